@@ -1,0 +1,313 @@
+"""Pixel rays through COLMAP cameras and their intersections with triangle meshes.
+
+Rays come from ``pycolmap.Camera.cam_from_img`` so every COLMAP camera model,
+distortion included, is handled by COLMAP itself. Intersections use Embree (through
+``embreex``) in one call per depth layer: the multi-hit loop iterates over layers
+(entry, exit, re-entry, ...), never over rays. Embree works in float32; every hit is
+then re-intersected in float64 against its triangle (Moller-Trumbore), so hit points
+lie on the mesh and reproject to their pixels to ~1e-9 px.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass, field
+from typing import Any
+
+import numpy as np
+import pycolmap
+
+from .structs import FloatArray, IndexArray, _check_shape
+
+logger = logging.getLogger(__name__)
+
+_EMBREE_WARNED = False
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class RaycastOptions:
+    """Options of the ray caster."""
+
+    max_hits: int = 8
+    """Maximum number of surface hits recorded per ray (entry, exit, ...)."""
+    require_embree: bool = False
+    """Fail instead of falling back to trimesh's pure-Python ray_triangle."""
+    epsilon_m: float = 1e-6
+    """Distance past a hit where the next layer's ray starts, in metres."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class RayHits:
+    """All surface hits of a bundle of rays on one scene.
+
+    ``ray_idx`` is sorted, and the hits of one ray are ordered by ``depth``.
+    """
+
+    ray_idx: IndexArray  # (H,) int64, the ray of each hit
+    geom_idx: IndexArray  # (H,) int64, the mesh of the scene that was hit
+    face_idx: IndexArray  # (H,) int64, triangle within that mesh
+    bary: FloatArray  # (H, 3) float64, barycentric coordinates in the triangle
+    depth: FloatArray  # (H,) float64, distance along the (unit) ray, metres
+
+    def __post_init__(self) -> None:
+        _check_shape("ray_idx", self.ray_idx, (None,))
+        h = self.ray_idx.shape[0]
+        for name in ("geom_idx", "face_idx", "depth"):
+            _check_shape(name, getattr(self, name), (h,))
+        _check_shape("bary", self.bary, (h, 3))
+
+    def __len__(self) -> int:
+        return int(self.ray_idx.shape[0])
+
+
+@dataclass(frozen=True, slots=True)
+class MeshScene:
+    """Triangle meshes prepared for ray queries (one Embree scene)."""
+
+    vertices: tuple[FloatArray, ...]  # per mesh (V_i, 3) float64
+    faces: tuple[IndexArray, ...]  # per mesh (F_i, 3) int64
+    _engine: Any = field(repr=False)
+    uses_embree: bool = True
+
+
+def build_scene(
+    meshes: list[tuple[FloatArray, IndexArray]],
+    options: RaycastOptions | None = None,
+) -> MeshScene:
+    """Build a ray-query scene from ``(vertices (V, 3), faces (F, 3))`` pairs."""
+    options = options or RaycastOptions()
+    vertices = tuple(np.asarray(v, dtype=np.float64) for v, _ in meshes)
+    faces = tuple(np.asarray(f, dtype=np.int64) for _, f in meshes)
+    for i, (v, f) in enumerate(zip(vertices, faces, strict=True)):
+        _check_shape(f"meshes[{i}] vertices", v, (None, 3))
+        _check_shape(f"meshes[{i}] faces", f, (None, 3))
+    try:
+        from embreex import mesh_construction, rtcore_scene
+    except ImportError as exc:
+        if options.require_embree:
+            raise RuntimeError(
+                "embreex is required (RaycastOptions.require_embree) but cannot be "
+                "imported: pip install embreex"
+            ) from exc
+        global _EMBREE_WARNED
+        if not _EMBREE_WARNED:
+            logger.warning("embreex not available: falling back to brute force (slow)")
+            _EMBREE_WARNED = True
+        return MeshScene(vertices, faces, None, uses_embree=False)
+    scene = rtcore_scene.EmbreeScene()
+    # Embree numbers geometries 0, 1, ... in insertion order: geomID == mesh index.
+    keep = [
+        mesh_construction.TriangleMesh(
+            scene=scene,
+            vertices=v.astype(np.float32),
+            indices=f.astype(np.int32),
+        )
+        for v, f in zip(vertices, faces, strict=True)
+    ]
+    return MeshScene(vertices, faces, (scene, keep), uses_embree=True)
+
+
+def _refine_hits(
+    scene: MeshScene,
+    origins: FloatArray,
+    dirs: FloatArray,
+    geom_idx: IndexArray,
+    face_idx: IndexArray,
+) -> tuple[FloatArray, FloatArray]:
+    """Float64 Moller-Trumbore of each ray against its hit triangle -> (t, bary)."""
+    tri = np.zeros((len(face_idx), 3, 3))
+    for g, (v, f) in enumerate(zip(scene.vertices, scene.faces, strict=True)):
+        sel = geom_idx == g
+        tri[sel] = v[f[face_idx[sel]]]
+    e1 = tri[:, 1] - tri[:, 0]
+    e2 = tri[:, 2] - tri[:, 0]
+    p = np.cross(dirs, e2)
+    det = np.einsum("ij,ij->i", e1, p)
+    # A ray exactly in the triangle's plane has det = 0: guard the division.
+    det = np.where(np.abs(det) < 1e-300, 1e-300, det)
+    inv_det = 1.0 / det
+    s = origins - tri[:, 0]
+    u = np.einsum("ij,ij->i", s, p) * inv_det
+    q = np.cross(s, e1)
+    v = np.einsum("ij,ij->i", dirs, q) * inv_det
+    t = np.einsum("ij,ij->i", e2, q) * inv_det
+    return t, np.stack([1.0 - u - v, u, v], axis=1)
+
+
+def _cast_once(
+    scene: MeshScene, origins: FloatArray, dirs: FloatArray
+) -> tuple[IndexArray, IndexArray]:
+    """First hit of every ray -> (geom_idx, face_idx), -1 where the ray misses."""
+    if scene.uses_embree:
+        engine = scene._engine[0]
+        out = engine.run(
+            origins.astype(np.float32), dirs.astype(np.float32), output=1
+        )
+        return out["geomID"].astype(np.int64), out["primID"].astype(np.int64)
+    return _cast_brute_force(scene, origins, dirs)
+
+
+def _cast_brute_force(
+    scene: MeshScene, origins: FloatArray, dirs: FloatArray, chunk: int = 4_000_000
+) -> tuple[IndexArray, IndexArray]:
+    """Exact first hits without Embree: Moller-Trumbore of ray chunks x all faces."""
+    tri = np.concatenate([v[f] for v, f in zip(scene.vertices, scene.faces, strict=True)])
+    geom_of = np.concatenate(
+        [np.full(len(f), g) for g, f in enumerate(scene.faces)]
+    ).astype(np.int64)
+    face_of = np.concatenate([np.arange(len(f)) for f in scene.faces]).astype(np.int64)
+    e1, e2 = tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]
+    geom = np.full(len(origins), -1, dtype=np.int64)
+    face = np.full(len(origins), -1, dtype=np.int64)
+    step = max(1, chunk // max(1, len(tri)))
+    for s0 in range(0, len(origins), step):  # loop over chunks of rays, not rays
+        o, d = origins[s0 : s0 + step, None], dirs[s0 : s0 + step, None]
+        p = np.cross(d, e2)
+        det = np.einsum("rfk,fk->rf", p, e1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            inv = 1.0 / det
+            s = o - tri[:, 0]
+            u = np.einsum("rfk,rfk->rf", s, p) * inv
+            q = np.cross(s, e1)
+            v = np.einsum("rfk,rfk->rf", np.broadcast_to(d, q.shape), q) * inv
+            t = np.einsum("fk,rfk->rf", e2, q) * inv
+            ok = (np.abs(det) > 1e-12) & (u >= 0) & (v >= 0) & (u + v <= 1) & (t > 0)
+        t = np.where(ok, t, np.inf)
+        best = np.argmin(t, axis=1)
+        has = np.isfinite(t[np.arange(len(t)), best])
+        geom[s0 : s0 + step][has] = geom_of[best[has]]
+        face[s0 : s0 + step][has] = face_of[best[has]]
+    return geom, face
+
+
+def first_hits(
+    scene: MeshScene, origins: FloatArray, dirs: FloatArray
+) -> tuple[IndexArray, IndexArray, FloatArray, FloatArray]:
+    """First hit of each ray.
+
+    Args:
+        scene: meshes to intersect.
+        origins: (N, 3) float64 ray origins.
+        dirs: (N, 3) float64 unit ray directions.
+
+    Returns:
+        geom_idx (N,) int64 and face_idx (N,) int64 (-1 on a miss), depth (N,)
+        float64 (inf on a miss) and bary (N, 3) float64 (zeros on a miss).
+    """
+    _check_shape("origins", origins, (None, 3))
+    _check_shape("dirs", dirs, (len(origins), 3))
+    geom, face = _cast_once(scene, origins, dirs)
+    depth = np.full(len(origins), np.inf)
+    bary = np.zeros((len(origins), 3))
+    hit = face >= 0
+    if hit.any():
+        depth[hit], bary[hit] = _refine_hits(
+            scene, origins[hit], dirs[hit], geom[hit], face[hit]
+        )
+    return geom, face, depth, bary
+
+
+def all_hits(
+    scene: MeshScene,
+    origins: FloatArray,
+    dirs: FloatArray,
+    options: RaycastOptions | None = None,
+) -> RayHits:
+    """Every hit of every ray, up to ``options.max_hits`` per ray, sorted by depth.
+
+    Args:
+        scene: meshes to intersect.
+        origins: (N, 3) float64 ray origins.
+        dirs: (N, 3) float64 unit ray directions.
+        options: ray-casting options.
+    """
+    options = options or RaycastOptions()
+    _check_shape("origins", origins, (None, 3))
+    _check_shape("dirs", dirs, (len(origins), 3))
+    active = np.arange(len(origins))
+    start = np.zeros(len(origins))  # distance already travelled along each ray
+    chunks: list[tuple[IndexArray, ...]] = []
+    depths: list[FloatArray] = []
+    barys: list[FloatArray] = []
+    for _ in range(options.max_hits):
+        if len(active) == 0:
+            break
+        o = origins[active] + start[active, None] * dirs[active]
+        geom, face = _cast_once(scene, o, dirs[active])
+        hit = face >= 0
+        if not hit.any():
+            break
+        ray = active[hit]
+        t, bary = _refine_hits(scene, origins[ray], dirs[ray], geom[hit], face[hit])
+        chunks.append((ray, geom[hit], face[hit]))
+        depths.append(t)
+        barys.append(bary)
+        # Restart just past this hit; Embree's float32 t would drift, so use float64.
+        start[ray] = t + options.epsilon_m
+        active = ray
+    if not chunks:
+        return RayHits(
+            ray_idx=np.zeros(0, dtype=np.int64),
+            geom_idx=np.zeros(0, dtype=np.int64),
+            face_idx=np.zeros(0, dtype=np.int64),
+            bary=np.zeros((0, 3)),
+            depth=np.zeros(0),
+        )
+    ray_idx = np.concatenate([c[0] for c in chunks])
+    depth = np.concatenate(depths)
+    order = np.lexsort((depth, ray_idx))
+    return RayHits(
+        ray_idx=ray_idx[order],
+        geom_idx=np.concatenate([c[1] for c in chunks])[order],
+        face_idx=np.concatenate([c[2] for c in chunks])[order],
+        bary=np.concatenate(barys)[order],
+        depth=depth[order],
+    )
+
+
+def rays_cam(camera: pycolmap.Camera, xy_img: FloatArray) -> FloatArray:
+    """Unit ray directions (N, 3) in the camera frame of pixels ``xy_img`` (N, 2)."""
+    _check_shape("xy_img", xy_img, (None, 2))
+    if len(xy_img) == 0:
+        return np.zeros((0, 3))
+    xy = camera.cam_from_img(np.asarray(xy_img, dtype=np.float64))
+    d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
+    return d / np.linalg.norm(d, axis=1, keepdims=True)
+
+
+def rays_world(
+    camera: pycolmap.Camera, cam_from_world: FloatArray, xy_img: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Origins and unit directions (N, 3) in world of pixels ``xy_img`` (N, 2)."""
+    R, t = cam_from_world[:, :3], cam_from_world[:, 3]
+    dirs = rays_cam(camera, xy_img) @ R  # R^T d, row-wise
+    centre = -R.T @ t
+    return np.broadcast_to(centre, dirs.shape).copy(), dirs
+
+
+def project(
+    camera: pycolmap.Camera, cam_from_world: FloatArray, points_world: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """Project world points -> (xy_img (N, 2), depth z (N,)); NaN behind the camera."""
+    _check_shape("points_world", points_world, (None, 3))
+    p_cam = points_world @ cam_from_world[:, :3].T + cam_from_world[:, 3]
+    xy = np.full((len(p_cam), 2), np.nan)
+    front = p_cam[:, 2] > 1e-9
+    if front.any():
+        xy[front] = camera.img_from_cam(p_cam[front], check_cheirality=False)
+    return xy, p_cam[:, 2]
+
+
+def pixel_grid(width: int, height: int, step: int = 1) -> FloatArray:
+    """Pixel centres (COLMAP convention, +0.5) of a ``step``-strided grid, row-major."""
+    xs = np.arange(0, width, step) + 0.5
+    ys = np.arange(0, height, step) + 0.5
+    gx, gy = np.meshgrid(xs, ys)
+    return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def surface_points(
+    vertices: FloatArray, faces: IndexArray, face_idx: IndexArray, bary: FloatArray
+) -> FloatArray:
+    """Points (N, 3) at barycentric ``bary`` (N, 3) of triangles ``face_idx`` (N,)."""
+    return np.einsum("nk,nkd->nd", bary, vertices[faces[face_idx]])
