@@ -32,8 +32,9 @@ class RaycastOptions:
     """Maximum number of surface hits recorded per ray (entry, exit, ...)."""
     require_embree: bool = False
     """Fail instead of falling back to trimesh's pure-Python ray_triangle."""
-    epsilon_m: float = 1e-6
-    """Distance past a hit where the next layer's ray starts, in metres."""
+    epsilon_m: float = 1e-4
+    """Distance past a hit where the next layer's ray starts, in metres (above
+    Embree's float32 resolution at scene scale, below any body thickness)."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -239,11 +240,14 @@ def all_hits(
             break
         ray = active[hit]
         t, bary = _refine_hits(scene, origins[ray], dirs[ray], geom[hit], face[hit])
-        chunks.append((ray, geom[hit], face[hit]))
-        depths.append(t)
-        barys.append(bary)
-        # Restart just past this hit; Embree's float32 t would drift, so use float64.
-        start[ray] = t + options.epsilon_m
+        # A float32 re-hit of the surface just left does not advance: skip it, and
+        # step that ray further instead of recording the hit twice.
+        adv = t > start[ray]
+        chunks.append((ray[adv], geom[hit][adv], face[hit][adv]))
+        depths.append(t[adv])
+        barys.append(bary[adv])
+        start[ray[adv]] = t[adv] + options.epsilon_m
+        start[ray[~adv]] += options.epsilon_m
         active = ray
     if not chunks:
         return RayHits(

@@ -1,0 +1,54 @@
+# colmap-vc: every target creates or refreshes the local virtual environment itself.
+PYTHON ?= python3
+VENV ?= .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+OUT ?= out
+
+.PHONY: install demo test test-all test-slow lint typecheck bench bench-synth bodies synthetic docs clean
+
+$(STAMP): pyproject.toml
+	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test,viz]"
+	@touch $(STAMP)
+
+install: $(STAMP)
+
+# The main job on the bundled default scene (see docs/quickstart.md).
+demo: $(STAMP)
+	$(VENV)/bin/colmap-vc demo $(OUT)/demo --overwrite
+
+# Fast tests (slow end-to-end checks are marked and run by test-all / .ci/run).
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+test-all: $(STAMP)
+	$(PY) -m pytest -q -m "slow or not slow"
+
+lint: $(STAMP)
+	$(PY) -m pip install -q ruff
+	$(PY) -m ruff check colmap_vc tests bench scripts
+
+typecheck: $(STAMP)
+	$(PY) -m pip install -q mypy
+	$(PY) -m mypy colmap_vc
+
+# Benchmarks: JSON under bench/out/, tables in docs/.
+bench-synth: $(STAMP)
+	$(PY) bench/classic.py
+	$(PY) bench/synth_speed.py
+
+bench: bench-synth
+
+# Dev only: re-export the Anny bodies (needs CPU torch, kept out of the core venv).
+bodies:
+	@test -x .venv-bodies/bin/python || $(PYTHON) -m venv .venv-bodies
+	.venv-bodies/bin/pip install -q torch==2.13.0
+	.venv-bodies/bin/pip install -q anny==0.6.2 trimesh numpy
+	.venv-bodies/bin/python scripts/export_bodies.py --out data/synthetic/bodies
+
+synthetic: bodies
+
+clean:
+	rm -rf $(OUT) bench/out .pytest_cache

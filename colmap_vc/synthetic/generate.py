@@ -1,0 +1,303 @@
+"""`colmap-vc synth`: write a synthetic scene as a COLMAP project.
+
+Layout of OUT_DIR::
+
+    images/cam00.jpg ...        rendered images
+    gt/sparse/                  ground-truth COLMAP model (.bin and .txt)
+    gt/surface/cam00.npz ...    ground-truth surface maps (pixel -> person, face, bary)
+    gt/priors/                  ground-truth priors (the `clean` level), format v1
+    priors/                     predicted priors at the requested noise level
+    database.db                 SIFT features + exhaustive matches (pycolmap)
+    scene.json                  what was generated, from which seed and options
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import shutil
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+from scipy.spatial import cKDTree
+
+from .. import __version__
+from ..priors import write_priors
+from ..structs import ImagePrior, ScenePriors
+from . import bodies as body_lib
+from .layout import CameraSpec, LayoutOptions, Preset, SceneLayout, make_layout
+from .noise import NOISE_LEVELS, NoiseLevel, PersonView, predict_person
+from .render import FIRST_PERSON, RenderedView, build_world, render_view
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class SynthOptions:
+    """Options of `colmap-vc synth`."""
+
+    seed: int = 0
+    """Seed of everything random: same seed, same files."""
+    num_people: int = 1
+    """People in the scene (1 to 3)."""
+    noise: NoiseLevel = NoiseLevel.REALISTIC
+    """Noise level of the predicted priors (clean, realistic, hard)."""
+    num_cameras: int | None = None
+    """Cameras (dome/dense: 8-16, drawn from the seed when unset)."""
+    width: int = 640
+    """Image width."""
+    height: int = 480
+    """Image height."""
+    camera_model: str | None = None
+    """COLMAP camera model (default: SIMPLE_RADIAL dome, OPENCV dense, PINHOLE pair)."""
+    pair_angle_deg: float | None = None
+    """Pair preset: angle between the two views, degrees (random when unset)."""
+    max_num_features: int = 2048
+    """SIFT features per image (a cap keeps extraction and matching fast)."""
+    make_database: bool = True
+    """Run SIFT extraction and exhaustive matching into database.db."""
+    overwrite: bool = False
+    """Replace an existing OUT_DIR."""
+    num_threads: int = -1
+    """Threads for COLMAP (-1: all cores)."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class SynthSummary:
+    """What `synth` wrote."""
+
+    out_dir: Path
+    preset: Preset
+    num_images: int
+    num_people: int
+    person_pixels: dict[str, int]
+    timings_s: dict[str, float] = field(default_factory=dict)
+
+
+def _camera(spec: CameraSpec, camera_id: int) -> pycolmap.Camera:
+    return pycolmap.Camera(
+        camera_id=camera_id,
+        model=spec.model,
+        width=spec.width,
+        height=spec.height,
+        params=spec.params,
+    )
+
+
+def gt_reconstruction(layout: SceneLayout) -> pycolmap.Reconstruction:
+    """Ground-truth model: camera i and image i (1-based, name order), no points."""
+    rec = pycolmap.Reconstruction()
+    for i, spec in enumerate(sorted(layout.cameras, key=lambda c: c.name), start=1):
+        rec.add_camera_with_trivial_rig(_camera(spec, i))
+        image = pycolmap.Image(name=spec.name, camera_id=i, image_id=i)
+        rec.add_image_with_trivial_frame(
+            image, pycolmap.Rigid3d(pycolmap.Rotation3d(spec.cam_from_world[:, :3]), spec.cam_from_world[:, 3])
+        )
+    return rec
+
+
+def _person_views(
+    view: RenderedView, layout: SceneLayout, posed: list[np.ndarray], spec: CameraSpec, world
+) -> list[PersonView]:
+    """Ground truth of every person visible in a rendered view."""
+    out = []
+    for k, person in enumerate(layout.people):
+        mask = view.geom_idx == FIRST_PERSON + k
+        if not mask.any():
+            continue
+        rows, cols = np.nonzero(mask)
+        body_from_world = world.people[k].body_from_world
+        R_bw, t_bw = body_from_world[:, :3], body_from_world[:, 3]
+        world_from_body = np.concatenate([R_bw.T, (-R_bw.T @ t_bw)[:, None]], axis=1)
+        C = spec.cam_from_world
+        cam_from_body = np.concatenate(
+            [C[:, :3] @ world_from_body[:, :3], (C[:, :3] @ world_from_body[:, 3] + C[:, 3])[:, None]],
+            axis=1,
+        )
+        out.append(
+            PersonView(
+                person_id=person.person_id,
+                phenotype=person.phenotype,
+                pose=person.pose,
+                body_vertices=posed[k],
+                cam_from_body=cam_from_body,
+                xy_img=np.stack([cols, rows], axis=1) + 0.5,
+                face_idx=view.face_idx[rows, cols],
+                bary=view.bary[rows, cols],
+                mask=mask,
+            )
+        )
+    return out
+
+
+def _write_surface_map(
+    path: Path, views: list[PersonView], bodies: body_lib.BodyModel
+) -> int:
+    """gt/surface/<image>.npz: every person pixel with its surface point."""
+    if not views:
+        np.savez_compressed(path, xy=np.zeros((0, 2), np.float32), person_id=np.zeros(0, np.int16),
+                            face=np.zeros(0, np.int32), bary=np.zeros((0, 3), np.float32),
+                            template_idx=np.zeros(0, np.int32))
+        return 0
+    template_idx = []
+    for v in views:
+        rest = bodies.rest_vertices[v.phenotype]
+        samples = body_lib.surface_points(bodies, rest, bodies.template_face_idx, bodies.template_bary)
+        points = body_lib.surface_points(bodies, rest, v.face_idx, v.bary)
+        template_idx.append(cKDTree(samples).query(points)[1])
+    np.savez_compressed(
+        path,
+        xy=np.concatenate([v.xy_img for v in views]).astype(np.float32),
+        person_id=np.concatenate([np.full(len(v.xy_img), v.person_id) for v in views]).astype(np.int16),
+        face=np.concatenate([v.face_idx for v in views]).astype(np.int32),
+        bary=np.concatenate([v.bary for v in views]).astype(np.float32),
+        template_idx=np.concatenate(template_idx).astype(np.int32),
+    )
+    return sum(len(v.xy_img) for v in views)
+
+
+def build_database(
+    out_dir: Path, layout: SceneLayout, options: SynthOptions
+) -> Path:
+    """SIFT extraction with the known intrinsics, then exhaustive matching."""
+    db_path = out_dir / "database.db"
+    extraction = pycolmap.FeatureExtractionOptions(num_threads=options.num_threads)
+    extraction.sift.max_num_features = options.max_num_features
+    for spec in sorted(layout.cameras, key=lambda c: c.name):
+        reader = pycolmap.ImageReaderOptions(
+            camera_model=spec.model, camera_params=",".join(f"{p:.17g}" for p in spec.params)
+        )
+        pycolmap.extract_features(
+            db_path,
+            out_dir / "images",
+            image_names=[spec.name],
+            camera_mode=pycolmap.CameraMode.PER_IMAGE,
+            reader_options=reader,
+            extraction_options=extraction,
+            device=pycolmap.Device.cpu,
+        )
+    matching = pycolmap.FeatureMatchingOptions(num_threads=options.num_threads)
+    pycolmap.match_exhaustive(db_path, matching_options=matching, device=pycolmap.Device.cpu)
+    return db_path
+
+
+def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None = None) -> SynthSummary:
+    """Generate one synthetic scene into ``out_dir`` (see the module docstring)."""
+    options = options or SynthOptions()
+    preset = Preset(preset)
+    out_dir = Path(out_dir)
+    if out_dir.exists() and any(out_dir.iterdir()):
+        if not options.overwrite:
+            raise FileExistsError(f"{out_dir} exists and is not empty (use --overwrite)")
+        shutil.rmtree(out_dir)
+    timings: dict[str, float] = {}
+    t0 = time.perf_counter()
+    rng = np.random.default_rng(options.seed)
+    bodies = body_lib.load_bodies()
+    layout = make_layout(
+        preset,
+        rng,
+        num_phenotypes=bodies.rest_vertices.shape[0],
+        num_poses=bodies.pose_rotvec.shape[0],
+        options=LayoutOptions(
+            num_people=options.num_people,
+            num_cameras=options.num_cameras,
+            width=options.width,
+            height=options.height,
+            camera_model=options.camera_model,
+            pair_angle_deg=options.pair_angle_deg,
+        ),
+    )
+    posed = [body_lib.pose_body(bodies, p.phenotype, p.pose) for p in layout.people]
+    world = build_world(layout, bodies, posed, rng)
+    for sub in ("images", "gt/surface", "gt/sparse"):
+        (out_dir / sub).mkdir(parents=True, exist_ok=True)
+    timings["setup"] = time.perf_counter() - t0
+
+    gt_priors: dict[str, ImagePrior] = {}
+    pred_priors: dict[str, ImagePrior] = {}
+    person_pixels: dict[str, int] = {}
+    t_render = t_priors = 0.0
+    for spec in layout.cameras:
+        t1 = time.perf_counter()
+        view = render_view(world, spec, rng)
+        # OpenCV writes BGR; the renderer produces RGB.
+        cv2.imwrite(str(out_dir / "images" / spec.name), view.image[:, :, ::-1],
+                    [cv2.IMWRITE_JPEG_QUALITY, 95])
+        t2 = time.perf_counter()
+        camera = _camera(spec, 1)
+        views = _person_views(view, layout, posed, spec, world)
+        stem = Path(spec.name).stem
+        person_pixels[spec.name] = _write_surface_map(out_dir / "gt/surface" / f"{stem}.npz", views, bodies)
+        # Detector order is not identity order: shuffle the people per image.
+        order = rng.permutation(len(views))
+        gt_priors[spec.name] = ImagePrior(
+            image_name=spec.name,
+            persons=tuple(predict_person(bodies, views[i], camera, NoiseLevel.CLEAN, rng) for i in order),
+        )
+        pred_priors[spec.name] = ImagePrior(
+            image_name=spec.name,
+            persons=tuple(predict_person(bodies, views[i], camera, options.noise, rng) for i in order),
+        )
+        t_render += t2 - t1
+        t_priors += time.perf_counter() - t2
+    timings["render"] = t_render
+    timings["priors"] = t_priors
+
+    t1 = time.perf_counter()
+    sizes = {c.name: (c.width, c.height) for c in layout.cameras}
+    templates = {"anny": bodies.faces}
+    write_priors(ScenePriors(images=gt_priors), out_dir / "gt/priors", templates=templates, image_sizes=sizes)
+    write_priors(ScenePriors(images=pred_priors), out_dir / "priors", templates=templates, image_sizes=sizes)
+    rec = gt_reconstruction(layout)
+    rec.write_binary(str(out_dir / "gt/sparse"))
+    rec.write_text(str(out_dir / "gt/sparse"))
+    timings["write"] = time.perf_counter() - t1
+
+    if options.make_database:
+        t1 = time.perf_counter()
+        build_database(out_dir, layout, options)
+        timings["database"] = time.perf_counter() - t1
+    timings["total"] = time.perf_counter() - t0
+
+    spec_json = {
+        "colmap_vc_version": __version__,
+        "preset": preset.value,
+        "options": {k: (v.value if hasattr(v, "value") else v) for k, v in asdict(options).items()},
+        "noise_model": asdict(NOISE_LEVELS[NoiseLevel(options.noise)]),
+        "backdrop": layout.backdrop.value,
+        "people": [
+            {
+                "person_id": p.person_id,
+                "phenotype": bodies.phenotype_names[p.phenotype],
+                "pose": bodies.pose_names[p.pose],
+                "position_xy": p.position_xy.tolist(),
+                "yaw_deg": float(np.degrees(p.yaw_rad)),
+            }
+            for p in layout.people
+        ],
+        "cameras": [
+            {"name": c.name, "model": c.model, "params": c.params.tolist(),
+             "cam_from_world": c.cam_from_world.tolist()}
+            for c in layout.cameras
+        ],
+    }
+    (out_dir / "scene.json").write_text(json.dumps(spec_json, indent=1))
+    summary = SynthSummary(
+        out_dir=out_dir,
+        preset=preset,
+        num_images=len(layout.cameras),
+        num_people=len(layout.people),
+        person_pixels=person_pixels,
+        timings_s=timings,
+    )
+    logger.info(
+        "synth %s: %d images, %d people, %.1f s (render %.1f s, priors %.1f s, database %.1f s)",
+        preset.value, summary.num_images, summary.num_people, timings["total"],
+        timings["render"], timings["priors"], timings.get("database", 0.0),
+    )
+    return summary
