@@ -1,0 +1,47 @@
+"""Shared helpers of the benchmark scripts: output folders, JSON and Markdown."""
+
+from __future__ import annotations
+
+import json
+import logging
+import os
+import platform
+import subprocess
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+OUT = ROOT / "bench" / "out"
+DOCS = ROOT / "docs"
+
+
+def setup_logging() -> None:
+    logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s", datefmt="%H:%M:%S")
+    import pycolmap
+
+    pycolmap.logging.minloglevel = 2
+
+
+def machine() -> dict:
+    """Where the numbers were measured."""
+    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
+    return {"python": sys.version.split()[0], "platform": platform.platform(), "cpus": os.cpu_count(), "commit": commit}
+
+
+def write_json(name: str, payload: dict) -> Path:
+    OUT.mkdir(parents=True, exist_ok=True)
+    path = OUT / name
+    path.write_text(json.dumps(payload, indent=1))
+    return path
+
+
+def replace_section(doc: Path, marker: str, body: str) -> None:
+    """Replace the text between <!-- marker:begin --> and <!-- marker:end --> in doc."""
+    begin, end = f"<!-- {marker}:begin -->", f"<!-- {marker}:end -->"
+    text = doc.read_text() if doc.exists() else ""
+    block = f"{begin}\n{body.rstrip()}\n{end}"
+    if begin in text and end in text:
+        text = text[: text.index(begin)] + block + text[text.index(end) + len(end) :]
+    else:
+        text = text.rstrip() + "\n\n" + block + "\n"
+    doc.write_text(text)
