@@ -205,7 +205,7 @@ def _predict_mesh(
     target = true_joints[:, :2] / true_joints[:, 2:3]
     verts = verts + _refit_translation(joints(bodies, verts), target)
     z = joints(bodies, verts)[0, 2]
-    focal = float(np.mean(camera.focal_length_x + camera.focal_length_y)) / 2
+    focal = camera.mean_focal_length()
     shift_px = rng.normal(0, model.offset_px, 2) if model.offset_px > 0 else np.zeros(2)
     verts[:, :2] += shift_px * z / focal
     return verts

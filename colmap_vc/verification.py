@@ -1,0 +1,155 @@
+"""Geometric verification of virtual correspondences (pycolmap's 5-point RANSAC).
+
+VCs satisfy the epipolar constraint like any match, so the pair's essential matrix is
+estimated with COLMAP's own calibrated two-view estimator, jointly over the VCs and
+the pair's classic matches when there are any.
+"""
+
+from __future__ import annotations
+
+import logging
+from dataclasses import dataclass
+
+import numpy as np
+import pycolmap
+
+from .structs import BoolArray, FloatArray, PairGeometry, _check_shape
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class VerificationOptions:
+    """Options of the two-view verification."""
+
+    max_error_px: float = 4.0
+    """RANSAC inlier threshold (COLMAP's epipolar error), pixels."""
+    min_num_inliers: int = 15
+    """Fewer inliers: the pair gets no two-view geometry."""
+    confidence: float = 0.9999
+    """RANSAC confidence."""
+    max_num_trials: int = 10000
+    """RANSAC iterations at most."""
+    seed: int = 0
+    """RANSAC seed (deterministic results)."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Verification:
+    """Result of verifying one pair."""
+
+    geometry: PairGeometry | None  # None: not verified
+    vc_is_inlier: BoolArray  # (M,)
+    classic_is_inlier: BoolArray  # (C,)
+
+    @property
+    def num_inliers(self) -> int:
+        """VC and classic inliers."""
+        return int(self.vc_is_inlier.sum() + self.classic_is_inlier.sum())
+
+
+def two_view_options(options: VerificationOptions) -> pycolmap.TwoViewGeometryOptions:
+    """pycolmap options from ours."""
+    opts = pycolmap.TwoViewGeometryOptions(
+        min_num_inliers=options.min_num_inliers, compute_relative_pose=True
+    )
+    opts.ransac.max_error = options.max_error_px
+    opts.ransac.confidence = options.confidence
+    opts.ransac.max_num_trials = options.max_num_trials
+    opts.ransac.random_seed = options.seed
+    # VCs concentrate on a person: never call that a watermark.
+    opts.detect_watermark = False
+    return opts
+
+
+def verify_pair(
+    camera1: pycolmap.Camera,
+    camera2: pycolmap.Camera,
+    vc_xy1: FloatArray,
+    vc_xy2: FloatArray,
+    classic_xy1: FloatArray | None = None,
+    classic_xy2: FloatArray | None = None,
+    options: VerificationOptions | None = None,
+) -> Verification:
+    """Estimate the pair's geometry from VCs (+ classic matches) and split inliers.
+
+    Args:
+        camera1, camera2: the two cameras (known intrinsics).
+        vc_xy1, vc_xy2: (M, 2) VC pixels.
+        classic_xy1, classic_xy2: (C, 2) pixels of the pair's classic matches.
+        options: verification options.
+    """
+    options = options or VerificationOptions()
+    _check_shape("vc_xy1", vc_xy1, (None, 2))
+    _check_shape("vc_xy2", vc_xy2, (len(vc_xy1), 2))
+    if classic_xy1 is None or classic_xy2 is None:
+        classic_xy1 = classic_xy2 = np.zeros((0, 2))
+    _check_shape("classic_xy2", classic_xy2, (len(classic_xy1), 2))
+    m, c = len(vc_xy1), len(classic_xy1)
+    none = Verification(
+        geometry=None,
+        vc_is_inlier=np.zeros(m, dtype=bool),
+        classic_is_inlier=np.zeros(c, dtype=bool),
+    )
+    if m + c < max(5, options.min_num_inliers):
+        return none
+    xy1 = np.concatenate([vc_xy1, classic_xy1]).astype(np.float64)
+    xy2 = np.concatenate([vc_xy2, classic_xy2]).astype(np.float64)
+    matches = np.repeat(np.arange(m + c, dtype=np.uint32)[:, None], 2, axis=1)
+    tvg = pycolmap.estimate_calibrated_two_view_geometry(
+        camera1, xy1, camera2, xy2, matches, two_view_options(options)
+    )
+    config = int(tvg.config)
+    inliers = np.asarray(tvg.inlier_matches, dtype=np.int64).reshape(-1, 2)[:, 0]
+    if config not in (
+        int(pycolmap.TwoViewGeometryConfiguration.CALIBRATED),
+        int(pycolmap.TwoViewGeometryConfiguration.PLANAR),
+        int(pycolmap.TwoViewGeometryConfiguration.PLANAR_OR_PANORAMIC),
+        int(pycolmap.TwoViewGeometryConfiguration.PANORAMIC),
+    ) or len(inliers) < options.min_num_inliers:
+        return none
+    is_inlier = np.zeros(m + c, dtype=bool)
+    is_inlier[inliers] = True
+    pose = tvg.cam2_from_cam1.matrix()
+    return Verification(
+        geometry=PairGeometry(
+            config=config,
+            E=np.asarray(tvg.E, dtype=np.float64),
+            F=np.asarray(tvg.F, dtype=np.float64),
+            H=np.asarray(tvg.H, dtype=np.float64),
+            cam2_from_cam1=pose,
+        ),
+        vc_is_inlier=is_inlier[:m],
+        classic_is_inlier=is_inlier[m:],
+    )
+
+
+def epipolar_errors_px(
+    camera1: pycolmap.Camera,
+    camera2: pycolmap.Camera,
+    cam2_from_cam1: FloatArray,
+    xy1: FloatArray,
+    xy2: FloatArray,
+) -> FloatArray:
+    """Symmetric point-to-epipolar-line distance (M,), in pixels.
+
+    Computed on undistorted normalized coordinates (so any camera model works) and
+    scaled by each camera's mean focal length; the larger of the two sides.
+    """
+    _check_shape("xy1", xy1, (None, 2))
+    _check_shape("xy2", xy2, (len(xy1), 2))
+    if len(xy1) == 0:
+        return np.zeros(0)
+    x1 = np.c_[camera1.cam_from_img(xy1), np.ones(len(xy1))]
+    x2 = np.c_[camera2.cam_from_img(xy2), np.ones(len(xy2))]
+    R, t = cam2_from_cam1[:, :3], cam2_from_cam1[:, 3]
+    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
+    E = tx @ R
+    l2 = x1 @ E.T  # epipolar lines in image 2
+    l1 = x2 @ E  # epipolar lines in image 1
+    num = np.abs(np.einsum("ij,ij->i", x2, l2))
+    d2 = num / np.maximum(np.linalg.norm(l2[:, :2], axis=1), 1e-15)
+    d1 = num / np.maximum(np.linalg.norm(l1[:, :2], axis=1), 1e-15)
+    f1 = camera1.mean_focal_length()
+    f2 = camera2.mean_focal_length()
+    return np.maximum(d1 * f1, d2 * f2)
