@@ -69,6 +69,48 @@ class Eval:
 
 
 @dataclass(frozen=True)
+class Augment:
+    """Add virtual correspondences from human priors to a COLMAP database."""
+
+    database: tyro.conf.Positional[Path]
+    """COLMAP database after feature extraction and matching (modified in place)."""
+    priors: Path
+    """Priors folder (or its priors.json), format v1 (docs/priors.md)."""
+    image_path: Path | None = None
+    """Image folder (recorded in the run info; not needed to compute VCs)."""
+    max_error_px: float = 4.0
+    """RANSAC inlier threshold, pixels."""
+    min_num_inliers: int = 15
+    """Fewer verified VCs: the pair gets no two-view geometry."""
+    consistency_tolerance_cm: float = 5.0
+    """Map pixels whose mesh hit is further from their map point are not used, cm."""
+    num_samples: int = 2000
+    """Template surface samples (tracks) per body topology."""
+    no_classic: bool = False
+    """Verify VCs alone, without the pair's classic matches."""
+    no_keypoints: bool = False
+    """Do not use 2D keypoints as VCs."""
+    no_dense_map: bool = False
+    """Ignore the dense surface maps (mesh projections only)."""
+    dry_run: bool = False
+    """Compute and report, write nothing."""
+    no_progress: bool = False
+    """No progress bar."""
+    verbose: bool = False
+    """Debug logging."""
+
+
+@dataclass(frozen=True)
+class Strip:
+    """Remove colmap-vc's VCs: the database becomes exactly what it was before augment."""
+
+    database: tyro.conf.Positional[Path]
+    """COLMAP database."""
+    verbose: bool = False
+    """Debug logging."""
+
+
+@dataclass(frozen=True)
 class Demo:
     """The main job on the bundled default scene: synth, classic COLMAP, evaluation."""
 
@@ -142,6 +184,57 @@ def _run_eval(cmd: Eval) -> int:
     return 0
 
 
+def _run_augment(cmd: Augment) -> int:
+    from .augment import AugmentOptions, run
+    from .matching import MatchingOptions
+    from .verification import VerificationOptions
+
+    options = AugmentOptions(
+        matching=MatchingOptions(
+            num_samples=cmd.num_samples,
+            consistency_tolerance_cm=cmd.consistency_tolerance_cm,
+            use_keypoints=not cmd.no_keypoints,
+            use_dense_map=not cmd.no_dense_map,
+        ),
+        verification=VerificationOptions(
+            max_error_px=cmd.max_error_px, min_num_inliers=cmd.min_num_inliers
+        ),
+        use_classic_matches=not cmd.no_classic,
+        dry_run=cmd.dry_run,
+        show_progress=not cmd.no_progress,
+    )
+    summary = run(cmd.database, cmd.priors, options)
+    lines = ["| image 1 | image 2 | people | VCs | inliers | ratio | co-visible | virtual | keypoint | classic inliers |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    for p in summary.pairs:
+        k = p.num_by_kind
+        lines.append(
+            f"| {p.image_name1} | {p.image_name2} | {p.association_method} {p.association} | {p.num_vcs} | "
+            f"{p.num_inliers} | {p.inlier_ratio:.2f} | {k.get('covisible', 0)} | {k.get('virtual', 0)} | "
+            f"{k.get('keypoint', 0)} | {p.num_classic_inliers}/{p.num_classic} |"
+        )
+    sys.stdout.write("\n".join(lines) + "\n")
+    for name, reason in summary.skipped_images.items():
+        sys.stdout.write(f"skipped {name}: {reason}\n")
+    stages = ", ".join(f"{k} {v:.2f} s" for k, v in summary.timings_s.items())
+    sys.stdout.write(
+        f"{summary.num_verified_pairs}/{len(summary.pairs)} pairs verified; {stages}"
+        f"{' (dry run: nothing written)' if summary.dry_run else ''}\n"
+    )
+    return 0
+
+
+def _run_strip(cmd: Strip) -> int:
+    from .database import strip
+
+    result = strip(cmd.database)
+    if not result.had_vcs:
+        logger.info("%s has no colmap-vc VCs: nothing to strip", cmd.database)
+    else:
+        logger.info("stripped VCs from %s: %s", cmd.database, result)
+    return 0
+
+
 def _run_demo(cmd: Demo) -> int:
     from .demo import run
 
@@ -156,8 +249,8 @@ def _run_demo(cmd: Demo) -> int:
     return 0
 
 
-COMMANDS = {"synth": Synth, "eval": Eval, "demo": Demo}
-RUNNERS = {Synth: _run_synth, Eval: _run_eval, Demo: _run_demo}
+COMMANDS = {"synth": Synth, "augment": Augment, "strip": Strip, "eval": Eval, "demo": Demo}
+RUNNERS = {Synth: _run_synth, Augment: _run_augment, Strip: _run_strip, Eval: _run_eval, Demo: _run_demo}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -150,12 +150,11 @@ def _place_people(
         raise ValueError(f"num_people={num_people} must be between 1 and 3")
     positions: list[FloatArray] = []
     while len(positions) < num_people:
-        radius = 0.0 if num_people == 1 else rng.uniform(0.5, 1.0)
-        p = radius * np.array(
-            [math.cos(a := rng.uniform(0, 2 * math.pi)), math.sin(a)]
-        )
         if num_people == 1:
             p = rng.uniform(-0.2, 0.2, size=2)
+        else:
+            angle = rng.uniform(0, 2 * math.pi)
+            p = rng.uniform(0.5, 1.0) * np.array([math.cos(angle), math.sin(angle)])
         if all(np.linalg.norm(p - q) > 0.8 for q in positions):
             positions.append(p)
     phenotypes = rng.permutation(num_phenotypes)[:num_people]
@@ -216,16 +215,28 @@ def make_layout(
         )
         if not 0 <= angle <= 180:
             raise ValueError(f"pair_angle_deg={angle} must be within [0, 180]")
+        # Opposite views need low elevations: the angle is at most 180 - (e1 + e2).
+        top = min(25.0, (180.0 - angle) / 2)
+        # ... and at least |e1 - e2|, so the second elevation stays within `angle`.
+        e1, e2 = rng.uniform(min(5.0, top), top, 2)
+        elevation = np.deg2rad([e1, np.clip(e2, e1 - angle, e1 + angle)])
+        # Azimuth difference that makes the 3D angle between the two viewing
+        # directions exactly `angle` (given both elevations), where reachable.
+        c1, c2 = np.cos(elevation)
+        s1, s2 = np.sin(elevation)
+        cos_dazi = (math.cos(math.radians(angle)) - s1 * s2) / (c1 * c2)
         base = rng.uniform(0, 2 * math.pi)
-        azimuth = np.array([base, base + math.radians(angle)])
-        elevation = np.deg2rad(rng.uniform(5, 25, 2))
+        azimuth = np.array([base, base + math.acos(float(np.clip(cos_dazi, -1.0, 1.0)))])
         # At 0 degrees the cameras still differ in distance, so there is a baseline.
         radius = np.array([rng.uniform(3.0, 3.5), rng.uniform(4.0, 4.5)])
         backdrop = Backdrop.ROOM
 
     cameras = []
+    shared_target = np.r_[centroid, 1.0]
     for i in range(num_cameras):
         target = np.r_[centroid + rng.normal(0, 0.1, 2), rng.uniform(0.8, 1.2)]
+        if preset is Preset.PAIR:
+            target = shared_target  # the angle is measured at this point
         centre = target + radius[i] * np.array(
             [
                 math.cos(elevation[i]) * math.cos(azimuth[i]),

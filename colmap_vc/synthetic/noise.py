@@ -188,15 +188,17 @@ def _predict_mesh(
         blend = None
     delta = None
     if model.joint_sigma_deg > 0:
+        # Per-bone scale: the spine and neck chains share one joint's worth of error,
+        # helper bones and the root (the global orientation) get none.
         delta = rng.normal(0, math.radians(model.joint_sigma_deg), bodies.pose_rotvec.shape[1:])
-        delta[bodies.bone_parent < 0] = 0.0  # the root is the global orientation
+        delta *= bodies.bone_sigma_scale[:, None]
     body = pose_body(bodies, view.phenotype, view.pose, delta_rotvec=delta, shape_blend=blend)
     # Scale error: the predicted body's height is off by e, and so is its depth.
     e = rng.uniform(*model.scale_error) * rng.choice([-1.0, 1.0])
     height_true = np.ptp(view.body_vertices[:, 2])
     body = body * (height_true / np.ptp(body[:, 2]) * (1.0 + e))
     verts = _transform(view.cam_from_body, body)
-    pelvis = joints(bodies, verts)[0]
+    pelvis = joints(bodies, verts)[0]  # joint 0 is the pelvis (bodies README)
     R_err = _random_rotation(rng, rng.uniform(*model.rotation_deg))
     verts = (verts - pelvis) @ R_err.T + pelvis * (1.0 + e)
     # Refit the translation so the predicted joints project onto the true 2D joints,
