@@ -1,4 +1,4 @@
-"""Baselines run in the same harness as colmap-vc: classic COLMAP for now."""
+"""Baselines run in the same harness as colmap-vc: classic COLMAP, mesh alignment."""
 
 from __future__ import annotations
 
@@ -6,10 +6,12 @@ import logging
 import shutil
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 
 from .evaluation import Metrics, evaluate_reconstruction
 from .mapping import MappingOptions, run_incremental
+from .structs import FloatArray, ImagePrior
 
 logger = logging.getLogger(__name__)
 
@@ -35,3 +37,31 @@ def run_classic(
         metrics.auc["15"], metrics.auc["30"], metrics.auc["45"],
     )
     return rec, metrics
+
+
+def procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
+    """Rigid transform (3, 4) [R | t] minimising ||R src + t - dst|| (Kabsch, no scale)."""
+    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
+    U, _, Vt = np.linalg.svd((dst - mu_d).T @ (src - mu_s))
+    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
+    R = U @ D @ Vt
+    return np.concatenate([R, (mu_d - R @ mu_s)[:, None]], axis=1)
+
+
+def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
+    """cam2_from_cam1 (3, 4) from the predicted meshes of the people both images share.
+
+    The paper's "deep optimization" analog: the same person's two predicted meshes
+    (same topology, vertex to vertex) aligned rigidly. People are matched by id; an
+    image pair without a shared id (or without ids) gives None.
+    """
+    by_id = {p.person_id: p for p in prior2.persons if p.person_id is not None}
+    src, dst = [], []
+    for p in prior1.persons:
+        q = by_id.get(p.person_id) if p.person_id is not None else None
+        if q is not None and len(q.vertices_cam) == len(p.vertices_cam):
+            src.append(p.vertices_cam)
+            dst.append(q.vertices_cam)
+    if not src:
+        return None
+    return procrustes(np.concatenate(src), np.concatenate(dst))
