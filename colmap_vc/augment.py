@@ -26,6 +26,7 @@ from .matching import (
     TemplateSamples,
     match_persons,
     observe_person,
+    refit_image_prior,
     sample_template,
     template_key,
 )
@@ -136,7 +137,7 @@ def observe_image(
     options: MatchingOptions,
 ) -> list[PersonObservations]:
     """Observations of every person of one image."""
-    prior = priors.images[image_name]
+    prior = refit_image_prior(priors.images[image_name], camera, options)
     others = None
     if len(prior.persons) > 1:
         others = raycast.build_scene([(p.vertices_cam, p.faces) for p in prior.persons])

@@ -7,11 +7,14 @@ in every image, so one sample is one multi-view track:
 
 1. Project s through the image's own predicted mesh: the mesh's 3D shape says which
    pixel's ray passes through s (all hits of the ray, not only the first).
-2. Correct that pixel with the 2D evidence of the dense surface map: for every pixel of
-   the map, the offset between the pixel and the mesh projection of the surface point
-   the map assigns to it says how the mesh is misplaced in 2D; a local average of the
-   consistent offsets is added to the projection. A point behind the body thus lands
-   behind the pixel the map puts its front on, whatever the predicted depth.
+2. Use the 2D evidence (dense surface map, 2D keypoints): first re-pose each mesh
+   rigidly so its surface points project onto the map pixels that see them (PnP);
+   then correct each sample's pixel through the body surface: the map pixels whose
+   surface points are next to the first point the sample's ray meets on the body
+   (the sample itself when visible, the front of the body when hidden) say where
+   that point really is; their offset to its mesh projection is added. A point
+   behind the body thus lands behind the pixel the map puts its front on, whatever
+   the predicted depth, articulation or shape.
 3. Consistency filters (as in the paper): map pixels whose mesh hit disagrees with the
    map by more than a tolerance in cm, or that fall outside the silhouette, are not
    used; samples without consistent support, or outside the silhouette, are dropped.
@@ -24,13 +27,14 @@ at least one sees directly: co-visible when both see it, virtual when one does.
 
 from __future__ import annotations
 
+import dataclasses
 import hashlib
 import logging
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 import pycolmap
+from scipy.spatial import cKDTree
 
 from . import raycast
 from .structs import (
@@ -56,10 +60,19 @@ class MatchingOptions:
     """A map pixel is consistent when its map point and its mesh hit are this close."""
     visibility_tolerance_cm: float = 1.0
     """A sample is visible when the first hit of its ray is this close to it."""
-    correction_radius_px: int = 7
-    """Half-size of the window averaging dense-map offsets around a sample."""
-    min_support: int = 3
-    """Consistent map pixels needed in that window to keep a sample."""
+    refit_pose: bool = True
+    """Re-fit each mesh's rigid pose to the 2D evidence (dense-map pixels and 2D
+    keypoints against their mesh points) by PnP (pycolmap LO-RANSAC + refinement)."""
+    refit_max_error_px: float = 6.0
+    """RANSAC threshold of that PnP, pixels."""
+    refit_max_points: int = 4000
+    """Map pixels used by the PnP at most (an even subsample)."""
+    snap_tolerance_cm: float = 6.0
+    """A sample's front surface point is found in the dense map when a consistent
+    map pixel's surface point lies within this distance on the body."""
+    snap_neighbours: int = 16
+    """Map pixels (nearest on the body, within the tolerance) averaged for the 2D
+    correction of one sample."""
     max_correction_px: float = 25.0
     """Samples whose 2D correction is larger are dropped (mesh and map disagree)."""
     use_dense_map: bool = True
@@ -148,21 +161,6 @@ def sample_template(
     return TemplateSamples(key=key, face_idx=face[chosen].astype(np.int64), bary=bary[chosen])
 
 
-def _warp_field(
-    shape: tuple[int, int], xy: FloatArray, offsets: FloatArray, radius: int
-) -> tuple[FloatArray, FloatArray]:
-    """Box-filtered offsets of scattered pixels -> (mean offset (H, W, 2), count (H, W))."""
-    h, w = shape
-    acc = np.zeros((h, w, 3), dtype=np.float64)
-    px = np.floor(xy).astype(np.int64)
-    np.add.at(acc, (px[:, 1], px[:, 0]), np.c_[offsets, np.ones(len(xy))])
-    k = 2 * radius + 1
-    acc = cv2.boxFilter(acc, -1, (k, k), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    count = acc[..., 2]
-    mean = acc[..., :2] / np.maximum(count, 1.0)[..., None]
-    return mean, count
-
-
 def _in_image(xy: FloatArray, camera: pycolmap.Camera) -> BoolArray:
     return (
         np.isfinite(xy).all(axis=1)
@@ -171,6 +169,62 @@ def _in_image(xy: FloatArray, camera: pycolmap.Camera) -> BoolArray:
         & (xy[:, 0] < camera.width)
         & (xy[:, 1] < camera.height)
     )
+
+
+def refit_mesh_pose(
+    person: PersonPrior, camera: pycolmap.Camera, options: MatchingOptions
+) -> tuple[FloatArray, int]:
+    """Vertices (V, 3) moved rigidly so the mesh projects onto the 2D evidence.
+
+    Mesh-recovery networks get the 3D orientation wrong by about 10 degrees while the
+    dense map and 2D keypoints say precisely where body points are in the image. Each
+    map pixel (and keypoint) gives a 2D-3D correspondence with its point on the mesh;
+    their robust PnP re-poses the mesh. Returns the vertices and the number of PnP
+    inliers (0: the mesh was kept as predicted).
+    """
+    verts, faces = person.vertices_cam, person.faces
+    xy_parts, xyz_parts = [], []
+    if options.use_dense_map and person.surface_map is not None and len(person.surface_map):
+        sm = person.surface_map
+        step = max(1, len(sm) // options.refit_max_points)
+        xy_parts.append(sm.xy_img[::step])
+        xyz_parts.append(raycast.surface_points(verts, faces, sm.face_idx[::step], sm.bary[::step]))
+    if options.use_keypoints and person.keypoints_xy is not None and person.keypoints_cam is not None:
+        valid = (
+            np.ones(len(person.keypoints_xy), dtype=bool)
+            if person.keypoints_valid is None
+            else person.keypoints_valid
+        )
+        xy_parts.append(person.keypoints_xy[valid])
+        xyz_parts.append(person.keypoints_cam[valid])
+    if not xy_parts or sum(len(x) for x in xy_parts) < 12:
+        return verts, 0
+    xy = np.concatenate(xy_parts)
+    xyz = np.concatenate(xyz_parts)
+    estimation = pycolmap.AbsolutePoseEstimationOptions()
+    estimation.ransac.max_error = options.refit_max_error_px
+    estimation.ransac.random_seed = 0
+    result = pycolmap.estimate_and_refine_absolute_pose(xy, xyz, camera, estimation)
+    if result is None:
+        return verts, 0
+    T = result["cam_from_world"].matrix()  # "world" = the predicted camera frame
+    num_inliers = int(np.sum(result["inlier_mask"]))
+    if num_inliers < 0.3 * len(xy):
+        return verts, 0
+    return verts @ T[:, :3].T + T[:, 3], num_inliers
+
+
+def refit_image_prior(
+    prior: ImagePrior, camera: pycolmap.Camera, options: MatchingOptions
+) -> ImagePrior:
+    """The image's priors with every mesh re-posed by :func:`refit_mesh_pose`."""
+    if not options.refit_pose:
+        return prior
+    persons = tuple(
+        dataclasses.replace(p, vertices_cam=refit_mesh_pose(p, camera, options)[0])
+        for p in prior.persons
+    )
+    return dataclasses.replace(prior, persons=persons)
 
 
 def observe_person(
@@ -182,6 +236,9 @@ def observe_person(
     others: raycast.MeshScene | None = None,
 ) -> PersonObservations:
     """Tracks of one person in one image (see the module docstring).
+
+    The meshes are used as given: call :func:`refit_image_prior` first to re-pose
+    them to the 2D evidence.
 
     Args:
         prior: the image's priors.
@@ -219,7 +276,11 @@ def observe_person(
         hidden_by_other = (geom_o >= 0) & (geom_o != person_index) & (depth_o < dist_to_point - tol_vis)
         visible &= ~hidden_by_other
 
-    # 2.-3. Dense-map correction with consistency filters.
+    # 2.-3. Dense-map correction through the body surface, with consistency filters.
+    # The sample's ray meets the body first at `first_hit` (the sample itself when
+    # visible, the front of the body when hidden). Map pixels whose surface point
+    # is next to that front point on the body say where it really is in the image:
+    # their offset to the mesh projection corrects the sample's pixel.
     idx = np.flatnonzero(keep)
     if options.use_dense_map and person.surface_map is not None and len(person.surface_map):
         sm = person.surface_map
@@ -228,26 +289,32 @@ def observe_person(
         ok = map_points[:, 2] > 1e-6
         map_xy[ok] = camera.img_from_cam(map_points[ok], check_cheirality=False)
         d = raycast.rays_cam(camera, sm.xy_img)
-        _, f_m, t_m, b_m = raycast.first_hits(own, np.zeros_like(d), d)
+        _, f_m, _, b_m = raycast.first_hits(own, np.zeros_like(d), d)
         mesh_hit = np.full((len(sm), 3), np.nan)
         on_mesh = f_m >= 0
         mesh_hit[on_mesh] = raycast.surface_points(verts, faces, f_m[on_mesh], b_m[on_mesh])
+        # Consistency: the map's surface point and the mesh's hit at the pixel agree
+        # (front/back and left/right flips fail this), inside the silhouette.
         consistent = ok & on_mesh & (np.linalg.norm(mesh_hit - map_points, axis=1) < tol_con)
         if options.use_mask and person.mask is not None:
             px = np.floor(sm.xy_img).astype(np.int64)
             consistent &= person.mask[px[:, 1], px[:, 0]]
-        mean, count = _warp_field(
-            (camera.height, camera.width),
-            sm.xy_img[consistent],
-            sm.xy_img[consistent] - map_xy[consistent],
-            options.correction_radius_px,
-        )
-        px = np.floor(xy_k).astype(np.int64)
-        correction = mean[px[:, 1], px[:, 0]]
-        support = count[px[:, 1], px[:, 0]]
-        good = (support >= options.min_support) & (
-            np.linalg.norm(correction, axis=1) <= options.max_correction_px
-        )
+        good = np.zeros(len(xy_k), dtype=bool)
+        correction = np.zeros_like(xy_k)
+        if consistent.any() and hit.any():
+            tree = cKDTree(map_points[consistent])
+            offsets = (sm.xy_img - map_xy)[consistent]
+            k = min(options.snap_neighbours, int(consistent.sum()))
+            dist, nn = tree.query(
+                np.nan_to_num(first_hit, nan=1e9), k=k,
+                distance_upper_bound=options.snap_tolerance_cm / 100.0,
+            )
+            dist, nn = dist.reshape(len(xy_k), k), nn.reshape(len(xy_k), k)
+            found = np.isfinite(dist)
+            num = found.sum(axis=1)
+            safe_nn = np.where(found, nn, 0)
+            correction = (offsets[safe_nn] * found[..., None]).sum(axis=1) / np.maximum(num, 1)[:, None]
+            good = (num > 0) & (np.linalg.norm(correction, axis=1) <= options.max_correction_px)
         xy_k = xy_k + correction
         sel = good & _in_image(xy_k, camera)
         idx, xy_k, visible, first_hit = idx[sel], xy_k[sel], visible[sel], first_hit[sel]

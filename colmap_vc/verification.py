@@ -106,7 +106,8 @@ def verify_pair(
         int(pycolmap.TwoViewGeometryConfiguration.PLANAR),
         int(pycolmap.TwoViewGeometryConfiguration.PLANAR_OR_PANORAMIC),
         int(pycolmap.TwoViewGeometryConfiguration.PANORAMIC),
-    ) or len(inliers) < options.min_num_inliers:
+    ) or len(inliers) < options.min_num_inliers or tvg.cam2_from_cam1 is None:
+        # (a planar or panoramic configuration can come without a relative pose)
         return none
     is_inlier = np.zeros(m + c, dtype=bool)
     is_inlier[inliers] = True
