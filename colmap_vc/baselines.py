@@ -4,14 +4,15 @@ from __future__ import annotations
 
 import logging
 import shutil
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 from .evaluation import Metrics, evaluate_reconstruction
-from .mapping import MappingOptions, run_incremental
-from .structs import FloatArray, ImagePrior
+from .mapping import COLMAP_DEFAULTS, MappingOptions, run_incremental
+from .structs import FloatArray, ImagePrior, ScenePriors
 
 logger = logging.getLogger(__name__)
 
@@ -28,7 +29,8 @@ def run_classic(
     shutil.copyfile(scene_dir / "database.db", db)
     gt = pycolmap.Reconstruction(scene_dir / "gt" / "sparse")
     rec, _ = run_incremental(
-        db, scene_dir / "images", work_dir / "classic", options, num_images=gt.num_images()
+        db, scene_dir / "images", work_dir / "classic", options or COLMAP_DEFAULTS,
+        num_images=gt.num_images(),
     )
     metrics = evaluate_reconstruction(rec, gt)
     logger.info(
@@ -65,3 +67,27 @@ def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
     if not src:
         return None
     return procrustes(np.concatenate(src), np.concatenate(dst))
+
+
+def mesh_alignment_poses(
+    priors: ScenePriors, image_names: Mapping[str, object] | None = None
+) -> dict[str, FloatArray]:
+    """cam_from_world (3, 4) per image from mesh alignment alone.
+
+    The world is the camera frame of a reference image (the one seeing the most
+    people); every other image is placed by :func:`mesh_alignment` of the people it
+    shares with the reference. Images sharing no person with it are left out
+    (unregistered). ``image_names`` restricts the images considered.
+    """
+    names = sorted(n for n in priors.images if image_names is None or n in image_names)
+    if not names:
+        return {}
+    ref = max(names, key=lambda n: len(priors.images[n].persons))
+    poses = {ref: np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)}
+    for name in names:
+        if name == ref:
+            continue
+        T = mesh_alignment(priors.images[ref], priors.images[name])
+        if T is not None:
+            poses[name] = T  # cam_from_(ref cam) = cam_from_world
+    return poses

@@ -101,6 +101,40 @@ class Augment:
 
 
 @dataclass(frozen=True)
+class Map:
+    """Map an augmented (or plain) COLMAP database with pycolmap, then refine with GBA."""
+
+    database: tyro.conf.Positional[Path]
+    """COLMAP database (augmented by `colmap-vc augment`, or plain)."""
+    image_path: Path
+    """Image folder."""
+    output_path: Path
+    """Output folder for the models (<k>/ per model; refined/ after GBA)."""
+    mapper: str = "incremental"
+    """incremental (pycolmap's incremental mapper) or global (GLOMAP)."""
+    init_min_num_inliers: int = 50
+    """Minimum inliers of the initial pair (COLMAP: 100)."""
+    init_min_tri_angle_deg: float = 4.0
+    """Minimum triangulation angle of the initial pair, degrees (COLMAP: 16)."""
+    abs_pose_min_num_inliers: int = 30
+    """Minimum 2D-3D inliers to register an image."""
+    filter_max_reproj_error_px: float = 8.0
+    """Observations reprojecting worse are filtered, pixels (COLMAP: 4)."""
+    refine_intrinsics: bool = False
+    """Refine focal length and distortion (default: known intrinsics)."""
+    no_ba: bool = False
+    """Initialisation only: no COLMAP bundle adjustment (ablation)."""
+    gba: bool = True
+    """Run the generalized bundle adjustment after mapping (--no-gba to skip)."""
+    overwrite: bool = False
+    """Replace a non-empty OUTPUT_PATH."""
+    seed: int = 0
+    """Seed of COLMAP's randomness."""
+    verbose: bool = False
+    """Debug logging."""
+
+
+@dataclass(frozen=True)
 class Strip:
     """Remove colmap-vc's VCs: the database becomes exactly what it was before augment."""
 
@@ -224,6 +258,38 @@ def _run_augment(cmd: Augment) -> int:
     return 0
 
 
+def _run_map(cmd: Map) -> int:
+    from .mapping import Mapper, MappingOptions, run
+
+    rec, summary = run(
+        cmd.database,
+        cmd.image_path,
+        cmd.output_path,
+        MappingOptions(
+            mapper=Mapper(cmd.mapper),
+            init_min_num_inliers=cmd.init_min_num_inliers,
+            init_min_tri_angle_deg=cmd.init_min_tri_angle_deg,
+            abs_pose_min_num_inliers=cmd.abs_pose_min_num_inliers,
+            filter_max_reproj_error_px=cmd.filter_max_reproj_error_px,
+            refine_intrinsics=cmd.refine_intrinsics,
+            bundle_adjustment=not cmd.no_ba,
+            seed=cmd.seed,
+        ),
+        overwrite=cmd.overwrite,
+    )
+    sys.stdout.write(
+        f"registered {summary.num_registered}/{summary.num_images} images "
+        f"({summary.num_models} model(s)); model: {summary.model_dir}\n"
+    )
+    for name, reason in summary.unregistered.items():
+        sys.stdout.write(f"  not registered: {name}: {reason}\n")
+    if cmd.gba:
+        from .refine import refine_model
+
+        refine_model(cmd.database, rec, cmd.output_path / "refined")
+    return 0
+
+
 def _run_strip(cmd: Strip) -> int:
     from .database import strip
 
@@ -249,8 +315,13 @@ def _run_demo(cmd: Demo) -> int:
     return 0
 
 
-COMMANDS = {"synth": Synth, "augment": Augment, "strip": Strip, "eval": Eval, "demo": Demo}
-RUNNERS = {Synth: _run_synth, Augment: _run_augment, Strip: _run_strip, Eval: _run_eval, Demo: _run_demo}
+COMMANDS = {
+    "synth": Synth, "augment": Augment, "map": Map, "strip": Strip, "eval": Eval, "demo": Demo,
+}
+RUNNERS = {
+    Synth: _run_synth, Augment: _run_augment, Map: _run_map, Strip: _run_strip,
+    Eval: _run_eval, Demo: _run_demo,
+}
 
 
 def main(argv: Sequence[str] | None = None) -> int:

@@ -1,37 +1,65 @@
-"""pycolmap incremental mapping: options, progress, model selection."""
+"""`colmap-vc map`: pycolmap mapping of an (augmented) database, with progress and a
+summary that says which images were registered and why the others were not.
+
+The defaults suit virtual correspondences: VC pairs are wide-baseline by nature and
+their pixels carry a few pixels of prior error, so the mapper's reprojection filters
+are looser than COLMAP's, while the inlier counts stay COLMAP's.
+"""
 
 from __future__ import annotations
 
+import enum
 import logging
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
 import pycolmap
 
+from . import database
+
 logger = logging.getLogger(__name__)
+
+
+class Mapper(enum.StrEnum):
+    """Which pycolmap mapper."""
+
+    INCREMENTAL = "incremental"
+    GLOBAL = "global"
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class MappingOptions:
-    """Options of the incremental mapper."""
+    """Options of the mapper (the ones that matter for VC pairs)."""
 
+    mapper: Mapper = Mapper.INCREMENTAL
+    """pycolmap's incremental mapper, or its global mapper (GLOMAP)."""
     refine_intrinsics: bool = False
-    """Refine focal length, principal point and distortion (off: known intrinsics)."""
+    """Refine focal length and distortion (off: the intrinsics are known)."""
     num_threads: int = -1
     """Threads (-1: all cores)."""
     seed: int = 0
-    """Seed of COLMAP's RANSAC (pycolmap.set_random_seed)."""
+    """Seed of COLMAP's randomness (pycolmap.set_random_seed)."""
     min_num_matches: int = 15
     """Minimum verified matches for a pair to enter the scene graph."""
-    init_min_num_inliers: int = 100
-    """Minimum inliers of the initial pair."""
-    init_min_tri_angle_deg: float = 16.0
-    """Minimum triangulation angle of the initial pair, degrees."""
+    init_min_num_inliers: int = 50
+    """Minimum inliers of the initial pair (COLMAP: 100)."""
+    init_min_tri_angle_deg: float = 4.0
+    """Minimum triangulation angle of the initial pair, degrees (COLMAP: 16)."""
     abs_pose_min_num_inliers: int = 30
     """Minimum 2D-3D inliers to register an image."""
+    abs_pose_max_error_px: float = 12.0
+    """RANSAC threshold of image registration, pixels."""
+    filter_max_reproj_error_px: float = 8.0
+    """Observations reprojecting worse are filtered, pixels (COLMAP: 4)."""
     multiple_models: bool = True
     """Allow several models (the largest one is returned)."""
+    bundle_adjustment: bool = True
+    """Run COLMAP's local and global bundle adjustment (off: initialisation only, i.e.
+    registration and triangulation with one global BA iteration, COLMAP's minimum)."""
+    show_progress: bool = True
+    """Log each registered image."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -39,14 +67,28 @@ class MappingSummary:
     """What the mapper produced."""
 
     num_models: int
-    num_registered: int
     num_images: int
+    registered: list[str]
+    unregistered: dict[str, str]  # image name -> why
     model_dir: Path | None
     elapsed_s: float
 
+    @property
+    def num_registered(self) -> int:
+        """Images in the largest model."""
+        return len(self.registered)
 
-def pipeline_options(options: MappingOptions) -> pycolmap.IncrementalPipelineOptions:
-    """pycolmap options from ours."""
+
+# COLMAP's own defaults, for the classic baseline.
+COLMAP_DEFAULTS = MappingOptions(
+    init_min_num_inliers=100,
+    init_min_tri_angle_deg=16.0,
+    filter_max_reproj_error_px=4.0,
+)
+
+
+def incremental_options(options: MappingOptions) -> pycolmap.IncrementalPipelineOptions:
+    """pycolmap incremental pipeline options from ours."""
     pipeline = pycolmap.IncrementalPipelineOptions(
         num_threads=options.num_threads,
         min_num_matches=options.min_num_matches,
@@ -54,11 +96,145 @@ def pipeline_options(options: MappingOptions) -> pycolmap.IncrementalPipelineOpt
         ba_refine_focal_length=options.refine_intrinsics,
         ba_refine_principal_point=False,
         ba_refine_extra_params=options.refine_intrinsics,
+        random_seed=options.seed,
     )
-    pipeline.mapper.init_min_num_inliers = options.init_min_num_inliers
-    pipeline.mapper.init_min_tri_angle = options.init_min_tri_angle_deg
-    pipeline.mapper.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
+    m = pipeline.mapper
+    m.init_min_num_inliers = options.init_min_num_inliers
+    m.init_min_tri_angle = options.init_min_tri_angle_deg
+    m.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
+    m.abs_pose_max_error = options.abs_pose_max_error_px
+    m.filter_max_reproj_error = options.filter_max_reproj_error_px
+    pipeline.triangulation.complete_max_reproj_error = options.filter_max_reproj_error_px
+    pipeline.triangulation.merge_max_reproj_error = options.filter_max_reproj_error_px
+    if not options.bundle_adjustment:
+        # Initialisation only: no local BA; COLMAP insists on >= 1 global iteration.
+        pipeline.ba_local_max_num_iterations = 0
+        pipeline.ba_global_max_num_iterations = 1
+        pipeline.ba_local_max_refinements = 1
+        pipeline.ba_global_max_refinements = 1
     return pipeline
+
+
+def global_options(options: MappingOptions) -> pycolmap.GlobalPipelineOptions:
+    """pycolmap global pipeline options from ours."""
+    pipeline = pycolmap.GlobalPipelineOptions(
+        num_threads=options.num_threads,
+        min_num_matches=options.min_num_matches,
+        multiple_models=options.multiple_models,
+        random_seed=options.seed,
+    )
+    return pipeline
+
+
+def _why_unregistered(
+    database_path: Path, best: pycolmap.Reconstruction | None
+) -> dict[str, str]:
+    """A reason per image of the database missing from the model."""
+    views = database.read_views(database_path)
+    geometries = database.read_two_view_geometries(database_path, include_vc=True)
+    registered = set() if best is None else {im.name for im in best.images.values() if im.has_pose}
+    id_of_name = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
+    reg_ids = {id_of_name[n] for n in registered if n in id_of_name}
+    reasons = {}
+    for name, image_id in id_of_name.items():
+        if name in registered:
+            continue
+        pairs = [
+            p for p, row in geometries.items()
+            if image_id in p and len(row.inlier_matches) > 0
+        ]
+        with_registered = [p for p in pairs if (set(p) - {image_id}) & reg_ids]
+        if not pairs:
+            reasons[name] = (
+                "no verified image pair: no classic matches survived verification and no "
+                "virtual correspondences (no priors, or no person shared with other images)"
+            )
+        elif not with_registered:
+            reasons[name] = (
+                f"{len(pairs)} verified pair(s), none with a registered image (a separate "
+                "component of the scene graph)"
+            )
+        else:
+            reasons[name] = (
+                f"{len(with_registered)} verified pair(s) with registered images, but "
+                "registration failed (too few 2D-3D inliers)"
+            )
+    return reasons
+
+
+def run(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    options: MappingOptions | None = None,
+    *,
+    overwrite: bool = False,
+) -> tuple[pycolmap.Reconstruction, MappingSummary]:
+    """Map a database; the models go to ``output_dir/<k>``, the largest is returned.
+
+    Raises:
+        FileNotFoundError: the database or image folder is missing.
+        FileExistsError: ``output_dir`` is not empty and ``overwrite`` is False.
+        RuntimeError: the mapper found no model (the reason is in the message).
+    """
+    options = options or MappingOptions()
+    database_path, image_dir, output_dir = Path(database_path), Path(image_dir), Path(output_dir)
+    if not database_path.is_file():
+        raise FileNotFoundError(f"database not found: {database_path}")
+    if not image_dir.is_dir():
+        raise FileNotFoundError(f"image folder not found: {image_dir}")
+    if output_dir.exists() and any(output_dir.iterdir()):
+        if not overwrite:
+            raise FileExistsError(f"{output_dir} exists and is not empty (use --overwrite)")
+        shutil.rmtree(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    views = database.read_views(database_path)
+    num_images = len(views.image_names)
+    pycolmap.set_random_seed(options.seed)
+    t0 = time.perf_counter()
+    if options.mapper is Mapper.GLOBAL:
+        models = pycolmap.global_mapping(
+            database_path, image_dir, output_dir, options=global_options(options)
+        )
+    else:
+        registered = [0]
+
+        def on_init() -> None:
+            logger.info("initial pair chosen")
+
+        def on_next() -> None:
+            registered[0] += 1
+            if options.show_progress:
+                logger.info("registered image %d/%d", registered[0] + 2, num_images)
+
+        models = pycolmap.incremental_mapping(
+            database_path, image_dir, output_dir, options=incremental_options(options),
+            initial_image_pair_callback=on_init, next_image_callback=on_next,
+        )
+    elapsed = time.perf_counter() - t0
+    best_key = max(models, key=lambda k: models[k].num_reg_images(), default=None)
+    best = None if best_key is None else models[best_key]
+    reasons = _why_unregistered(database_path, best)
+    if best is None:
+        why = "; ".join(f"{n}: {r}" for n, r in list(reasons.items())[:5])
+        raise RuntimeError(
+            f"the mapper found no model in {database_path} ({num_images} images). {why}"
+        )
+    summary = MappingSummary(
+        num_models=len(models),
+        num_images=num_images,
+        registered=sorted(im.name for im in best.images.values() if im.has_pose),
+        unregistered=reasons,
+        model_dir=output_dir / str(best_key),
+        elapsed_s=elapsed,
+    )
+    logger.info(
+        "mapping: %d model(s); the largest registers %d/%d images (%.1f s)",
+        summary.num_models, summary.num_registered, num_images, elapsed,
+    )
+    for name, reason in reasons.items():
+        logger.info("not registered: %s: %s", name, reason)
+    return best, summary
 
 
 def run_incremental(
@@ -67,30 +243,13 @@ def run_incremental(
     output_dir: Path,
     options: MappingOptions | None = None,
     num_images: int | None = None,
-) -> tuple[pycolmap.Reconstruction | None, MappingSummary]:
-    """Run pycolmap's incremental mapper; return the largest model (or None).
+) -> tuple[pycolmap.Reconstruction | None, MappingSummary | None]:
+    """Like :func:`run` but returns (None, None) instead of raising when no model.
 
-    The models are written to ``output_dir/<k>``; the largest is also returned.
+    Used by baselines, where a failure is a result to report.
     """
-    options = options or MappingOptions()
-    output_dir.mkdir(parents=True, exist_ok=True)
-    pycolmap.set_random_seed(options.seed)
-    t0 = time.perf_counter()
-    models = pycolmap.incremental_mapping(
-        database_path, image_dir, output_dir, options=pipeline_options(options)
-    )
-    elapsed = time.perf_counter() - t0
-    best_key = max(models, key=lambda k: models[k].num_reg_images(), default=None)
-    best = None if best_key is None else models[best_key]
-    summary = MappingSummary(
-        num_models=len(models),
-        num_registered=0 if best is None else best.num_reg_images(),
-        num_images=num_images if num_images is not None else -1,
-        model_dir=None if best_key is None else output_dir / str(best_key),
-        elapsed_s=elapsed,
-    )
-    logger.info(
-        "mapping: %d model(s), largest registers %d image(s), %.1f s",
-        summary.num_models, summary.num_registered, elapsed,
-    )
-    return best, summary
+    try:
+        return run(database_path, image_dir, output_dir, options, overwrite=True)
+    except RuntimeError as exc:
+        logger.info("%s", exc)
+        return None, None
