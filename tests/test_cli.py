@@ -1,0 +1,45 @@
+"""The command line: every subcommand answers --help, runs, and fails with exit codes."""
+
+from __future__ import annotations
+
+import json
+import shutil
+
+import pytest
+
+from colmap_vc.cli import COMMANDS, main
+
+
+@pytest.mark.parametrize("command", [None, *COMMANDS])
+def test_help(command, capsys):
+    argv = ["--help"] if command is None else [command, "--help"]
+    assert main(argv) == 0
+    assert "usage" in capsys.readouterr().out.lower()
+
+
+def test_usage_error_exits_2():
+    assert main(["synth"]) == 2
+    assert main(["no-such-command"]) == 2
+
+
+def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
+    db = tmp_path / "database.db"
+    shutil.copyfile(dome_scene / "database.db", db)
+    assert main(["augment", str(db), "--priors", str(dome_scene / "gt" / "priors"), "--no-progress"]) == 0
+    out = capsys.readouterr().out
+    assert "pairs verified" in out and "cam00.jpg" in out
+    assert main(["map", str(db), "--image-path", str(dome_scene / "images"),
+                 "--output-path", str(tmp_path / "sparse"), "--no-gba"]) == 0
+    assert "registered 6/6" in capsys.readouterr().out
+    # the output exists: a second run without --overwrite fails (exit 1), nothing lost
+    assert main(["map", str(db), "--image-path", str(dome_scene / "images"),
+                 "--output-path", str(tmp_path / "sparse"), "--no-gba"]) == 1
+    metrics = tmp_path / "m.json"
+    assert main(["eval", str(tmp_path / "sparse"), str(dome_scene / "gt" / "sparse"), "--output", str(metrics)]) == 0
+    assert json.loads(metrics.read_text())["num_registered"] == 6
+    assert main(["strip", str(db)]) == 0
+
+
+def test_runtime_errors_exit_1(tmp_path):
+    assert main(["eval", str(tmp_path / "nope"), str(tmp_path / "nope2")]) == 1
+    assert main(["augment", str(tmp_path / "missing.db"), "--priors", str(tmp_path)]) == 1
