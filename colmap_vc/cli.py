@@ -34,6 +34,8 @@ class Synth:
     """People in the scene (1 to 3)."""
     noise: str = "realistic"
     """Noise level of the predicted priors: clean, realistic or hard."""
+    extra_noise: tuple[str, ...] = ()
+    """Also write priors at these levels into priors_<level>/."""
     cameras: int | None = None
     """Number of cameras (dome/dense: 8-16, drawn from the seed when unset)."""
     camera_model: str | None = None
@@ -193,6 +195,7 @@ def _run_synth(cmd: Synth) -> int:
             seed=cmd.seed,
             num_people=cmd.people,
             noise=cmd.noise,  # type: ignore[arg-type]
+            extra_noise=tuple(cmd.extra_noise),  # type: ignore[arg-type]
             num_cameras=cmd.cameras,
             width=cmd.width,
             height=cmd.height,

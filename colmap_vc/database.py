@@ -557,3 +557,20 @@ def strip(db_path: str | PathLike[str]) -> StripSummary:
         summary.num_geometries_deleted,
     )
     return summary
+
+
+def drop_classic_matches(db_path: str | PathLike[str]) -> int:
+    """Delete every match and two-view geometry row (for a VC-only ablation copy).
+
+    Refuses a database that already holds VCs (strip it first). Returns the number
+    of pairs removed.
+    """
+    path = Path(db_path)
+    with _connect(path, write=True) as (conn, _), _transaction(conn, path):
+        if sch.vc_table_names(conn):
+            raise ValueError(f"{path} holds colmap-vc VCs: strip it before dropping matches")
+        num = conn.execute("SELECT COUNT(*) FROM matches").fetchone()[0]
+        conn.execute("DELETE FROM matches")
+        conn.execute("DELETE FROM two_view_geometries")
+    logger.info("dropped the classic matches of %d pairs from %s", num, path)
+    return int(num)

@@ -7,6 +7,7 @@ Layout of OUT_DIR::
     gt/surface/cam00.npz ...    ground-truth surface maps (pixel -> person, face, bary)
     gt/priors/                  ground-truth priors (the `clean` level), format v1
     priors/                     predicted priors at the requested noise level
+    priors_<level>/             more levels when asked (--extra-noise)
     database.db                 SIFT features + exhaustive matches (pycolmap)
     scene.json                  what was generated, from which seed and options
 """
@@ -56,6 +57,9 @@ class SynthOptions:
     """COLMAP camera model (default: SIMPLE_RADIAL dome, OPENCV dense, PINHOLE pair)."""
     pair_angle_deg: float | None = None
     """Pair preset: angle between the two views, degrees (random when unset)."""
+    extra_noise: tuple[NoiseLevel, ...] = ()
+    """Also write priors at these levels to priors_<level>/ (same scene, independent
+    random stream, so the default outputs do not change)."""
     max_num_features: int = 2048
     """SIFT features per image (a cap keeps extraction and matching fast)."""
     make_database: bool = True
@@ -220,6 +224,12 @@ def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None =
 
     gt_priors: dict[str, ImagePrior] = {}
     pred_priors: dict[str, ImagePrior] = {}
+    extra = [NoiseLevel(level) for level in options.extra_noise]
+    extra_priors: dict[NoiseLevel, dict[str, ImagePrior]] = {level: {} for level in extra}
+    extra_rng = {
+        level: np.random.default_rng([options.seed, 1000 + list(NoiseLevel).index(level)])
+        for level in extra
+    }
     person_pixels: dict[str, int] = {}
     t_render = t_priors = 0.0
     for spec in layout.cameras:
@@ -243,6 +253,13 @@ def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None =
             image_name=spec.name,
             persons=tuple(predict_person(bodies, views[i], camera, options.noise, rng) for i in order),
         )
+        for level in extra:
+            extra_priors[level][spec.name] = ImagePrior(
+                image_name=spec.name,
+                persons=tuple(
+                    predict_person(bodies, views[i], camera, level, extra_rng[level]) for i in order
+                ),
+            )
         t_render += t2 - t1
         t_priors += time.perf_counter() - t2
     timings["render"] = t_render
@@ -253,6 +270,9 @@ def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None =
     templates = {"anny": bodies.faces}
     write_priors(ScenePriors(images=gt_priors), out_dir / "gt/priors", templates=templates, image_sizes=sizes)
     write_priors(ScenePriors(images=pred_priors), out_dir / "priors", templates=templates, image_sizes=sizes)
+    for level, images in extra_priors.items():
+        write_priors(ScenePriors(images=images), out_dir / f"priors_{level.value}",
+                     templates=templates, image_sizes=sizes)
     rec = gt_reconstruction(layout)
     rec.write_binary(str(out_dir / "gt/sparse"))
     rec.write_text(str(out_dir / "gt/sparse"))
