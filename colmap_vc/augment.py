@@ -416,7 +416,7 @@ def run(database_path: Path, priors_path: Path, options: AugmentOptions | None =
         write = database.write_virtual_correspondences(
             database_path, vcs.keypoints, vcs.pairs, vcs.geometries,
             classic_inliers=vcs.classic_inliers, persons=vcs.associations,
-            run_info={"colmap_vc_version": __version__, "priors": str(priors_path),
+            run_info={"colmap_vc_version": __version__, "priors": str(Path(priors_path).resolve()),
                       "options": _jsonable(asdict(options))},
         )
         timings["write"] = time.perf_counter() - t0

@@ -1,20 +1,21 @@
-"""Baselines run in the same harness as colmap-vc: classic COLMAP, mesh alignment."""
+"""Baselines run in the same harness as colmap-vc: classic COLMAP, mesh alignment
+(the latter lives in :mod:`colmap_vc.meshalign`, re-exported here)."""
 
 from __future__ import annotations
 
 import logging
 import shutil
-from collections.abc import Mapping
 from pathlib import Path
 
-import numpy as np
 import pycolmap
 
 from .evaluation import Metrics, evaluate_reconstruction
 from .mapping import COLMAP_DEFAULTS, MappingOptions, run_incremental
-from .structs import FloatArray, ImagePrior, ScenePriors
+from .meshalign import mesh_alignment, mesh_alignment_poses, procrustes
 
 logger = logging.getLogger(__name__)
+
+__all__ = ["mesh_alignment", "mesh_alignment_poses", "procrustes", "run_classic"]
 
 
 def run_classic(
@@ -39,55 +40,3 @@ def run_classic(
         metrics.auc["15"], metrics.auc["30"], metrics.auc["45"],
     )
     return rec, metrics
-
-
-def procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
-    """Rigid transform (3, 4) [R | t] minimising ||R src + t - dst|| (Kabsch, no scale)."""
-    mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
-    U, _, Vt = np.linalg.svd((dst - mu_d).T @ (src - mu_s))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])
-    R = U @ D @ Vt
-    return np.concatenate([R, (mu_d - R @ mu_s)[:, None]], axis=1)
-
-
-def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
-    """cam2_from_cam1 (3, 4) from the predicted meshes of the people both images share.
-
-    The paper's "deep optimization" analog: the same person's two predicted meshes
-    (same topology, vertex to vertex) aligned rigidly. People are matched by id; an
-    image pair without a shared id (or without ids) gives None.
-    """
-    by_id = {p.person_id: p for p in prior2.persons if p.person_id is not None}
-    src, dst = [], []
-    for p in prior1.persons:
-        q = by_id.get(p.person_id) if p.person_id is not None else None
-        if q is not None and len(q.vertices_cam) == len(p.vertices_cam):
-            src.append(p.vertices_cam)
-            dst.append(q.vertices_cam)
-    if not src:
-        return None
-    return procrustes(np.concatenate(src), np.concatenate(dst))
-
-
-def mesh_alignment_poses(
-    priors: ScenePriors, image_names: Mapping[str, object] | None = None
-) -> dict[str, FloatArray]:
-    """cam_from_world (3, 4) per image from mesh alignment alone.
-
-    The world is the camera frame of a reference image (the one seeing the most
-    people); every other image is placed by :func:`mesh_alignment` of the people it
-    shares with the reference. Images sharing no person with it are left out
-    (unregistered). ``image_names`` restricts the images considered.
-    """
-    names = sorted(n for n in priors.images if image_names is None or n in image_names)
-    if not names:
-        return {}
-    ref = max(names, key=lambda n: len(priors.images[n].persons))
-    poses = {ref: np.concatenate([np.eye(3), np.zeros((3, 1))], axis=1)}
-    for name in names:
-        if name == ref:
-            continue
-        T = mesh_alignment(priors.images[ref], priors.images[name])
-        if T is not None:
-            poses[name] = T  # cam_from_(ref cam) = cam_from_world
-    return poses

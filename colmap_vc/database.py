@@ -574,3 +574,15 @@ def drop_classic_matches(db_path: str | PathLike[str]) -> int:
         conn.execute("DELETE FROM two_view_geometries")
     logger.info("dropped the classic matches of %d pairs from %s", num, path)
     return int(num)
+
+
+def read_run_info(db_path: str | PathLike[str]) -> dict[str, Any]:
+    """The run description `augment` recorded ({} for a database never augmented)."""
+    path = Path(db_path)
+    with _connect(path, write=False) as (conn, _):
+        if "colmap_vc_state" not in sch.vc_table_names(conn):
+            return {}
+        row = conn.execute(
+            "SELECT value FROM colmap_vc_state WHERE key = 'run_info'"
+        ).fetchone()
+    return json.loads(row[0]) if row and row[0] else {}

@@ -15,9 +15,14 @@ import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 
 from . import database
+from .evaluation import relative_pose, rotation_angle_deg
+from .meshalign import mesh_alignment_poses
+from .priors import read_priors
+from .structs import FloatArray, ScenePriors
 
 logger = logging.getLogger(__name__)
 
@@ -25,16 +30,23 @@ logger = logging.getLogger(__name__)
 class Mapper(enum.StrEnum):
     """Which pycolmap mapper."""
 
+    AUTO = "auto"  # incremental, checked against the mesh prior, mesh-initialised if not
     INCREMENTAL = "incremental"
     GLOBAL = "global"
+    MESH = "mesh"  # cameras from mesh alignment, then triangulation + bundle adjustment
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class MappingOptions:
     """Options of the mapper (the ones that matter for VC pairs)."""
 
-    mapper: Mapper = Mapper.INCREMENTAL
-    """pycolmap's incremental mapper, or its global mapper (GLOMAP)."""
+    mapper: Mapper = Mapper.AUTO
+    """auto: pycolmap's incremental mapper, whose result is checked against the coarse
+    camera poses the predicted meshes give (mesh alignment); when it contradicts them
+    (a mirrored two-view start, typical with one person), the mesh-initialised mapper
+    replaces it. incremental / global (GLOMAP) / mesh force one mapper."""
+    max_prior_deviation_deg: float = 35.0
+    """auto: largest median rotation difference to the mesh prior that is accepted."""
     refine_intrinsics: bool = False
     """Refine focal length and distortion (off: the intrinsics are known)."""
     num_threads: int = -1
@@ -126,6 +138,73 @@ def global_options(options: MappingOptions) -> pycolmap.GlobalPipelineOptions:
     return pipeline
 
 
+def _ceres_ba(rec: pycolmap.Reconstruction, loss_scale_px: float) -> None:
+    """COLMAP's bundle adjustment (intrinsics fixed, Cauchy loss), in place."""
+    ba = pycolmap.BundleAdjustmentOptions(
+        refine_focal_length=False, refine_principal_point=False, refine_extra_params=False,
+        print_summary=False,
+    )
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.loss_function_scale = loss_scale_px
+    pycolmap.bundle_adjustment(rec, ba)
+
+
+def mesh_initialised(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    priors: ScenePriors,
+    options: MappingOptions,
+    num_rounds: int = 3,
+) -> pycolmap.Reconstruction | None:
+    """Cameras from mesh alignment, then COLMAP triangulation + BA, a few rounds.
+
+    Robust where two-view geometry from one person is not: mesh alignment is off by
+    10-20 degrees but never flipped, and bundle adjustment over all views then pulls
+    the cameras to what the VC tracks say.
+    """
+    views = database.read_views(database_path)
+    poses = mesh_alignment_poses(priors, image_names=set(views.image_names))
+    if len(poses) < 2:
+        return None
+    rec = pycolmap.Reconstruction()
+    for camera in views.cameras.values():
+        rec.add_camera_with_trivial_rig(camera)
+    for image_id, name, camera_id in zip(views.image_ids, views.image_names, views.camera_ids, strict=True):
+        if name in poses:
+            T = poses[name]
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=name, camera_id=int(camera_id), image_id=int(image_id)),
+                pycolmap.Rigid3d(pycolmap.Rotation3d(T[:, :3]), T[:, 3]),
+            )
+    pipeline = incremental_options(options)
+    # The initial poses are coarse: triangulate generously, let BA tighten.
+    pipeline.triangulation.complete_max_reproj_error = 4 * options.filter_max_reproj_error_px
+    pipeline.triangulation.merge_max_reproj_error = 4 * options.filter_max_reproj_error_px
+    pipeline.triangulation.create_max_angle_error = 10.0
+    output_dir.mkdir(parents=True, exist_ok=True)
+    for _ in range(num_rounds):
+        rec = pycolmap.triangulate_points(rec, database_path, image_dir, output_dir, clear_points=True, options=pipeline)
+        if rec.num_points3D() == 0:
+            return None
+        _ceres_ba(rec, loss_scale_px=options.filter_max_reproj_error_px / 2)
+    rec.write(output_dir)
+    return rec
+
+
+def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> float:
+    """Median rotation difference (deg) between a model's and the meshes' relative poses."""
+    names = {im.name for im in rec.images.values() if im.has_pose}
+    mesh = mesh_alignment_poses(priors, image_names=names)
+    model = {im.name: im.cam_from_world().matrix() for im in rec.images.values() if im.has_pose}
+    common = sorted(set(mesh) & set(model))
+    diffs = [
+        rotation_angle_deg(relative_pose(model[a], model[b])[:, :3] @ relative_pose(mesh[a], mesh[b])[:, :3].T)
+        for i, a in enumerate(common) for b in common[i + 1 :]
+    ]
+    return float(np.median(diffs)) if diffs else 0.0
+
+
 def _why_unregistered(
     database_path: Path, best: pycolmap.Reconstruction | None
 ) -> dict[str, str]:
@@ -169,6 +248,7 @@ def run(
     options: MappingOptions | None = None,
     *,
     overwrite: bool = False,
+    priors_path: Path | None = None,
 ) -> tuple[pycolmap.Reconstruction, MappingSummary]:
     """Map a database; the models go to ``output_dir/<k>``, the largest is returned.
 
@@ -192,7 +272,13 @@ def run(
     num_images = len(views.image_names)
     pycolmap.set_random_seed(options.seed)
     t0 = time.perf_counter()
-    if options.mapper is Mapper.GLOBAL:
+    priors = _load_priors(database_path, priors_path, views.image_names)
+    if options.mapper is Mapper.MESH:
+        if priors is None:
+            raise ValueError("the mesh mapper needs the priors (--priors)")
+        rec = mesh_initialised(database_path, image_dir, output_dir / "0", priors, options)
+        models = {} if rec is None else {0: rec}
+    elif options.mapper is Mapper.GLOBAL:
         models = pycolmap.global_mapping(
             database_path, image_dir, output_dir, options=global_options(options)
         )
@@ -211,9 +297,21 @@ def run(
             database_path, image_dir, output_dir, options=incremental_options(options),
             initial_image_pair_callback=on_init, next_image_callback=on_next,
         )
-    elapsed = time.perf_counter() - t0
     best_key = max(models, key=lambda k: models[k].num_reg_images(), default=None)
     best = None if best_key is None else models[best_key]
+    if options.mapper is Mapper.AUTO and priors is not None:
+        deviation = 180.0 if best is None else prior_deviation_deg(best, priors)
+        if deviation > options.max_prior_deviation_deg:
+            logger.info(
+                "the incremental model contradicts the mesh prior (median %.0f deg > %.0f): "
+                "mesh-initialised mapping instead", deviation, options.max_prior_deviation_deg,
+            )
+            rec = mesh_initialised(database_path, image_dir, output_dir / "mesh", priors, options)
+            if rec is not None and (best is None or rec.num_reg_images() >= 0.8 * best.num_reg_images()):
+                models, best_key, best = {"mesh": rec}, "mesh", rec
+        else:
+            logger.info("the incremental model agrees with the mesh prior (median %.0f deg)", deviation)
+    elapsed = time.perf_counter() - t0
     reasons = _why_unregistered(database_path, best)
     if best is None:
         why = "; ".join(f"{n}: {r}" for n, r in list(reasons.items())[:5])
@@ -235,6 +333,18 @@ def run(
     for name, reason in reasons.items():
         logger.info("not registered: %s: %s", name, reason)
     return best, summary
+
+
+def _load_priors(
+    database_path: Path, priors_path: Path | None, image_names: tuple[str, ...]
+) -> ScenePriors | None:
+    """The priors given, else those `augment` recorded in the database, else None."""
+    if priors_path is None:
+        recorded = database.read_run_info(database_path).get("priors")
+        if not recorded or not Path(recorded).exists():
+            return None
+        priors_path = Path(recorded)
+    return read_priors(priors_path, known_image_names=image_names)
 
 
 def run_incremental(
