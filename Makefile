@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: colmap38 install demo test test-all test-slow lint typecheck bench bench-synth bodies synthetic docs clean
+.PHONY: colmap38 mediapipe install demo test test-all test-slow lint typecheck bench bench-synth bodies synthetic docs clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -27,6 +27,12 @@ colmap38:
 	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq colmap >/dev/null) \
 	      || echo "could not install Debian's colmap: its tests will skip"; \
 	  else echo "not root or no apt-get: Debian's colmap tests will skip"; fi; }
+
+# Optional MediaPipe estimator (colmap-vc priors). --no-deps: its metadata pulls a
+# second, non-headless OpenCV plus jax and sounddevice, which pose estimation never uses.
+mediapipe: $(STAMP)
+	$(PY) -m pip install -q --no-deps mediapipe==0.10.14
+	$(PY) -m pip install -q absl-py attrs flatbuffers "protobuf>=4.25.3,<5"
 
 # Fast tests (slow end-to-end checks are marked and run by test-all / .ci/run).
 test: $(STAMP) colmap38
