@@ -139,7 +139,7 @@ def observe_image(
     """Observations of every person of one image."""
     prior = refit_image_prior(priors.images[image_name], camera, options)
     others = None
-    if len(prior.persons) > 1:
+    if len(prior.persons) > 1 and options.people_occlude:
         others = raycast.build_scene([(p.vertices_cam, p.faces) for p in prior.persons])
     return [
         observe_person(prior, k, camera, samples[template_key(p)], options, others)

@@ -71,6 +71,28 @@ class Eval:
 
 
 @dataclass(frozen=True)
+class Priors:
+    """Estimate human priors from photos with the bundled offline estimator (MediaPipe)."""
+
+    images: tyro.conf.Positional[Path]
+    """Image folder."""
+    output: Path
+    """Priors folder to write (format v1, docs/priors.md)."""
+    database: Path | None = None
+    """COLMAP database whose cameras (intrinsics) to use; strongly recommended."""
+    estimator: str = "mediapipe"
+    """The estimator (only mediapipe is bundled: pip install colmap-vc[mediapipe])."""
+    max_people: int = 4
+    """Most people looked for per image."""
+    min_person_size_px: float = 100.0
+    """Skip people smaller than this (longer side of their landmarks' box), pixels."""
+    no_progress: bool = False
+    """No progress bar."""
+    verbose: bool = False
+    """Debug logging."""
+
+
+@dataclass(frozen=True)
 class Augment:
     """Add virtual correspondences from human priors to a COLMAP database."""
 
@@ -112,8 +134,11 @@ class Map:
     """Image folder."""
     output_path: Path
     """Output folder for the models (<k>/ per model; refined/ after GBA)."""
-    mapper: str = "incremental"
-    """incremental (pycolmap's incremental mapper) or global (GLOMAP)."""
+    priors: Path | None = None
+    """Priors (default: those `augment` recorded); the auto mapper checks its model
+    against the meshes and the mesh mapper starts from them."""
+    mapper: str = "auto"
+    """auto (incremental, checked against the mesh prior), incremental, global or mesh."""
     init_min_num_inliers: int = 50
     """Minimum inliers of the initial pair (COLMAP: 100)."""
     init_min_tri_angle_deg: float = 4.0
@@ -221,6 +246,29 @@ def _run_eval(cmd: Eval) -> int:
     return 0
 
 
+def _run_priors(cmd: Priors) -> int:
+    from .estimators import EstimatorKind, EstimatorOptions, run_estimator
+
+    summary = run_estimator(
+        cmd.images,
+        cmd.output,
+        database_path=cmd.database,
+        options=EstimatorOptions(
+            estimator=EstimatorKind(cmd.estimator),
+            max_people=cmd.max_people,
+            min_person_size_px=cmd.min_person_size_px,
+            show_progress=not cmd.no_progress,
+        ),
+    )
+    sys.stdout.write(
+        f"{summary.num_persons} people in {summary.num_images_with_people}/{summary.num_images} "
+        f"images -> {summary.priors_path} ({summary.seconds:.0f} s)\n"
+    )
+    for name, reason in summary.skipped.items():
+        sys.stdout.write(f"  skipped {name}: {reason}\n")
+    return 0
+
+
 def _run_augment(cmd: Augment) -> int:
     from .augment import AugmentOptions, run
     from .matching import MatchingOptions
@@ -279,6 +327,7 @@ def _run_map(cmd: Map) -> int:
             seed=cmd.seed,
         ),
         overwrite=cmd.overwrite,
+        priors_path=cmd.priors,
     )
     sys.stdout.write(
         f"registered {summary.num_registered}/{summary.num_images} images "
@@ -319,10 +368,10 @@ def _run_demo(cmd: Demo) -> int:
 
 
 COMMANDS = {
-    "synth": Synth, "augment": Augment, "map": Map, "strip": Strip, "eval": Eval, "demo": Demo,
+    "synth": Synth, "priors": Priors, "augment": Augment, "map": Map, "strip": Strip, "eval": Eval, "demo": Demo,
 }
 RUNNERS = {
-    Synth: _run_synth, Augment: _run_augment, Map: _run_map, Strip: _run_strip,
+    Synth: _run_synth, Priors: _run_priors, Augment: _run_augment, Map: _run_map, Strip: _run_strip,
     Eval: _run_eval, Demo: _run_demo,
 }
 

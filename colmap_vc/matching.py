@@ -79,6 +79,11 @@ class MatchingOptions:
     """Use the dense surface maps when the priors have them."""
     use_keypoints: bool = True
     """Use 2D keypoints (joint centres) as VCs."""
+    use_surface_samples: bool = True
+    """Use the body-surface samples (off: keypoints only, the keypoint baseline)."""
+    people_occlude: bool = True
+    """People hide each other (off when the people of one image come from different
+    instants of a static camera, see docs/real-data.md)."""
     use_mask: bool = True
     """Drop samples outside the person's silhouette when the priors have one."""
 
@@ -281,8 +286,11 @@ def observe_person(
     # visible, the front of the body when hidden). Map pixels whose surface point
     # is next to that front point on the body say where it really is in the image:
     # their offset to the mesh projection corrects the sample's pixel.
+    if not options.use_surface_samples:
+        keep[:] = False
+        xy_k, visible, first_hit = xy_k[:0], visible[:0], first_hit[:0]
     idx = np.flatnonzero(keep)
-    if options.use_dense_map and person.surface_map is not None and len(person.surface_map):
+    if options.use_dense_map and person.surface_map is not None and len(person.surface_map) and len(idx):
         sm = person.surface_map
         map_points = raycast.surface_points(verts, faces, sm.face_idx, sm.bary)
         map_xy = np.full((len(sm), 2), np.nan)

@@ -69,6 +69,36 @@ class MeshScene:
     faces: tuple[IndexArray, ...]  # per mesh (F_i, 3) int64
     _engine: Any = field(repr=False)
     uses_embree: bool = True
+    face_offset: IndexArray = field(init=False, repr=False)  # (M,) first row per mesh
+    v0: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) first vertex per face
+    e1: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) v1 - v0
+    e2: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) v2 - v0
+    normal: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) e1 x e2
+    projector: FloatArray = field(init=False, repr=False)  # (sum F_i, 2, 3) point -> (u, v)
+
+    def __post_init__(self) -> None:
+        tri = (
+            np.concatenate([v[f] for v, f in zip(self.vertices, self.faces, strict=True)])
+            if self.faces
+            else np.zeros((0, 3, 3))
+        )
+        sizes = [len(f) for f in self.faces]
+        object.__setattr__(self, "face_offset", np.r_[0, np.cumsum(sizes)[:-1]].astype(np.int64) if sizes else np.zeros(0, np.int64))
+        object.__setattr__(self, "v0", np.ascontiguousarray(tri[:, 0]))
+        object.__setattr__(self, "e1", tri[:, 1] - tri[:, 0])
+        object.__setattr__(self, "e2", tri[:, 2] - tri[:, 0])
+        object.__setattr__(self, "normal", _cross(self.e1, self.e2))
+        # (u, v) of a point P in the face's plane: G^-1 [e1; e2] (P - v0), G the Gram
+        # matrix of the edges; degenerate faces get zeros.
+        g11 = np.einsum("ij,ij->i", self.e1, self.e1)
+        g12 = np.einsum("ij,ij->i", self.e1, self.e2)
+        g22 = np.einsum("ij,ij->i", self.e2, self.e2)
+        det = g11 * g22 - g12 * g12
+        inv = np.where(np.abs(det) > 1e-30, 1.0 / np.where(det == 0, 1.0, det), 0.0)
+        proj = np.zeros((len(tri), 2, 3))
+        proj[:, 0] = (g22 * inv)[:, None] * self.e1 - (g12 * inv)[:, None] * self.e2
+        proj[:, 1] = (g11 * inv)[:, None] * self.e2 - (g12 * inv)[:, None] * self.e1
+        object.__setattr__(self, "projector", proj)
 
 
 def build_scene(
@@ -108,6 +138,15 @@ def build_scene(
     return MeshScene(vertices, faces, (scene, keep), uses_embree=True)
 
 
+def _cross(a: FloatArray, b: FloatArray) -> FloatArray:
+    """Row-wise cross product (N, 3); explicit, about 3x faster than np.cross."""
+    out = np.zeros_like(a)
+    out[:, 0] = a[:, 1] * b[:, 2] - a[:, 2] * b[:, 1]
+    out[:, 1] = a[:, 2] * b[:, 0] - a[:, 0] * b[:, 2]
+    out[:, 2] = a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+    return out
+
+
 def _refine_hits(
     scene: MeshScene,
     origins: FloatArray,
@@ -116,20 +155,17 @@ def _refine_hits(
     face_idx: IndexArray,
 ) -> tuple[FloatArray, FloatArray]:
     """Float64 Moller-Trumbore of each ray against its hit triangle -> (t, bary)."""
-    tri = np.zeros((len(face_idx), 3, 3))
-    for g, (v, f) in enumerate(zip(scene.vertices, scene.faces, strict=True)):
-        sel = geom_idx == g
-        tri[sel] = v[f[face_idx[sel]]]
-    e1 = tri[:, 1] - tri[:, 0]
-    e2 = tri[:, 2] - tri[:, 0]
-    p = np.cross(dirs, e2)
+    # Per-face first vertex and edges of all meshes, stacked at build time.
+    row = scene.face_offset[geom_idx] + face_idx
+    v0, e1, e2 = scene.v0[row], scene.e1[row], scene.e2[row]
+    p = _cross(dirs, e2)
     det = np.einsum("ij,ij->i", e1, p)
     # A ray exactly in the triangle's plane has det = 0: guard the division.
     det = np.where(np.abs(det) < 1e-300, 1e-300, det)
     inv_det = 1.0 / det
-    s = origins - tri[:, 0]
+    s = origins - v0
     u = np.einsum("ij,ij->i", s, p) * inv_det
-    q = np.cross(s, e1)
+    q = _cross(s, e1)
     v = np.einsum("ij,ij->i", dirs, q) * inv_det
     t = np.einsum("ij,ij->i", e2, q) * inv_det
     return t, np.stack([1.0 - u - v, u, v], axis=1)
@@ -137,15 +173,39 @@ def _refine_hits(
 
 def _cast_once(
     scene: MeshScene, origins: FloatArray, dirs: FloatArray
-) -> tuple[IndexArray, IndexArray]:
-    """First hit of every ray -> (geom_idx, face_idx), -1 where the ray misses."""
+) -> tuple[IndexArray, IndexArray, FloatArray, FloatArray]:
+    """First hit of every ray -> (geom_idx, face_idx, t, bary); -1 / inf on a miss.
+
+    Embree finds the face in float32; depth and barycentrics are then recomputed in
+    float64 against that face's plane (precomputed normals and projectors), so hit
+    points lie on the mesh and on the ray to ~1e-12 m.
+    """
     if scene.uses_embree:
-        engine = scene._engine[0]
-        out = engine.run(
+        out = scene._engine[0].run(
             origins.astype(np.float32), dirs.astype(np.float32), output=1
         )
-        return out["geomID"].astype(np.int64), out["primID"].astype(np.int64)
-    return _cast_brute_force(scene, origins, dirs)
+        geom = out["geomID"].astype(np.int64)
+        face = out["primID"].astype(np.int64)
+        t = np.full(len(origins), np.inf)
+        bary = np.zeros((len(origins), 3))
+        hit = face >= 0
+        if hit.any():
+            row = scene.face_offset[geom[hit]] + face[hit]
+            n = scene.normal[row]
+            rel = scene.v0[row] - origins[hit]
+            t_hit = np.einsum("ij,ij->i", n, rel) / np.einsum("ij,ij->i", n, dirs[hit])
+            t[hit] = t_hit
+            # Exact float64 barycentrics of the float64 hit point in its face.
+            uv = np.einsum("nkd,nd->nk", scene.projector[row], t_hit[:, None] * dirs[hit] - rel)
+            bary[hit] = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+        return geom, face, t, bary
+    geom, face = _cast_brute_force(scene, origins, dirs)
+    t = np.full(len(origins), np.inf)
+    bary = np.zeros((len(origins), 3))
+    hit = face >= 0
+    if hit.any():
+        t[hit], bary[hit] = _refine_hits(scene, origins[hit], dirs[hit], geom[hit], face[hit])
+    return geom, face, t, bary
 
 
 def _cast_brute_force(
@@ -197,15 +257,7 @@ def first_hits(
     """
     _check_shape("origins", origins, (None, 3))
     _check_shape("dirs", dirs, (len(origins), 3))
-    geom, face = _cast_once(scene, origins, dirs)
-    depth = np.full(len(origins), np.inf)
-    bary = np.zeros((len(origins), 3))
-    hit = face >= 0
-    if hit.any():
-        depth[hit], bary[hit] = _refine_hits(
-            scene, origins[hit], dirs[hit], geom[hit], face[hit]
-        )
-    return geom, face, depth, bary
+    return _cast_once(scene, origins, dirs)
 
 
 def all_hits(
@@ -234,12 +286,13 @@ def all_hits(
         if len(active) == 0:
             break
         o = origins[active] + start[active, None] * dirs[active]
-        geom, face = _cast_once(scene, o, dirs[active])
+        geom, face, t_o, bary = _cast_once(scene, o, dirs[active])
         hit = face >= 0
         if not hit.any():
             break
         ray = active[hit]
-        t, bary = _refine_hits(scene, origins[ray], dirs[ray], geom[hit], face[hit])
+        # Depth from the true origin (the cast started `start` further along).
+        t, bary = t_o[hit] + start[ray], bary[hit]
         # A float32 re-hit of the surface just left does not advance: skip it, and
         # step that ray further instead of recording the hit twice.
         adv = t > start[ray]
