@@ -5,7 +5,7 @@ PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 OUT ?= out
 
-.PHONY: colmap38 mediapipe install demo test test-all test-slow lint typecheck bench bench-synth bodies synthetic docs clean
+.PHONY: colmap38 chromium mediapipe install demo test test-all test-slow lint typecheck bench bench-synth bodies synthetic docs clean
 
 $(STAMP): pyproject.toml
 	@test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -28,6 +28,14 @@ colmap38:
 	      || echo "could not install Debian's colmap: its tests will skip"; \
 	  else echo "not root or no apt-get: Debian's colmap tests will skip"; fi; }
 
+# Debian's Chromium for the report's headless screenshot test (it skips without it).
+chromium:
+	@command -v chromium >/dev/null 2>&1 || { \
+	  if [ "$$(id -u)" = 0 ] && command -v apt-get >/dev/null 2>&1; then \
+	    (apt-get update -qq && DEBIAN_FRONTEND=noninteractive apt-get install -y -qq chromium >/dev/null) \
+	      || echo "could not install Debian's chromium: the report screenshot test will skip"; \
+	  else echo "not root or no apt-get: the report screenshot test will skip"; fi; }
+
 # Optional MediaPipe estimator (colmap-vc priors). --no-deps: its metadata pulls a
 # second, non-headless OpenCV plus jax and sounddevice, which pose estimation never uses.
 mediapipe: $(STAMP)
@@ -35,10 +43,10 @@ mediapipe: $(STAMP)
 	$(PY) -m pip install -q absl-py attrs flatbuffers "protobuf>=4.25.3,<5"
 
 # Fast tests (slow end-to-end checks are marked and run by test-all / .ci/run).
-test: $(STAMP) colmap38
+test: $(STAMP) colmap38 chromium
 	$(PY) -m pytest -q
 
-test-all: $(STAMP) colmap38
+test-all: $(STAMP) colmap38 chromium
 	$(PY) -m pytest -q -m "slow or not slow"
 
 lint: $(STAMP)

@@ -172,6 +172,26 @@ class Strip:
 
 
 @dataclass(frozen=True)
+class Report:
+    """A self-contained HTML report: VCs per pair colored by epipolar error, cameras, error curve."""
+
+    database: tyro.conf.Positional[Path]
+    """COLMAP database (augmented or plain)."""
+    image_path: Path
+    """Image folder."""
+    output: Path = Path("report.html")
+    """HTML file to write."""
+    model_path: Path | None = None
+    """Reconstructed COLMAP model folder."""
+    gt_model_path: Path | None = None
+    """Ground-truth COLMAP model folder (adds the error curve and GT-based coloring)."""
+    max_pairs: int = 12
+    """Image pairs shown."""
+    verbose: bool = False
+    """Debug logging."""
+
+
+@dataclass(frozen=True)
 class Demo:
     """The main job on the bundled default scene: synth, classic COLMAP, evaluation."""
 
@@ -342,6 +362,20 @@ def _run_map(cmd: Map) -> int:
     return 0
 
 
+def _run_report(cmd: Report) -> int:
+    from .report import ReportInputs, build_report
+
+    path = build_report(
+        ReportInputs(
+            database_path=cmd.database, image_dir=cmd.image_path, model_path=cmd.model_path,
+            gt_model_path=cmd.gt_model_path, max_pairs=cmd.max_pairs,
+        ),
+        cmd.output,
+    )
+    sys.stdout.write(f"report: {path}\n")
+    return 0
+
+
 def _run_strip(cmd: Strip) -> int:
     from .database import strip
 
@@ -363,16 +397,18 @@ def _run_demo(cmd: Demo) -> int:
         "image counts as 180 degrees):\n\n"
         f"{summary.table}\n\nTotal time {summary.elapsed_s:.0f} s. "
         f"Metrics: {cmd.out_dir / 'metrics.json'}\n"
+        f"Report (open in a browser): {summary.report_path}\n"
+        "What this means: docs/quickstart.md\n"
     )
     return 0
 
 
 COMMANDS = {
-    "synth": Synth, "priors": Priors, "augment": Augment, "map": Map, "strip": Strip, "eval": Eval, "demo": Demo,
+    "synth": Synth, "priors": Priors, "augment": Augment, "map": Map, "strip": Strip, "eval": Eval, "report": Report, "demo": Demo,
 }
 RUNNERS = {
     Synth: _run_synth, Priors: _run_priors, Augment: _run_augment, Map: _run_map, Strip: _run_strip,
-    Eval: _run_eval, Demo: _run_demo,
+    Eval: _run_eval, Report: _run_report, Demo: _run_demo,
 }
 
 
