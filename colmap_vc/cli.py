@@ -17,6 +17,9 @@ from typing import Annotated
 
 import tyro
 
+from .augment import AugmentOptions
+from .mapping import MappingOptions
+
 logger = logging.getLogger("colmap_vc")
 
 
@@ -101,25 +104,8 @@ class Augment:
     priors: Path
     """Priors folder (or its priors.json), format v1 (docs/priors.md)."""
     image_path: Path | None = None
-    """Image folder (recorded in the run info; not needed to compute VCs)."""
-    max_error_px: float = 4.0
-    """RANSAC inlier threshold, pixels."""
-    min_num_inliers: int = 15
-    """Fewer verified VCs: the pair gets no two-view geometry."""
-    consistency_tolerance_cm: float = 5.0
-    """Map pixels whose mesh hit is further from their map point are not used, cm."""
-    num_samples: int = 2000
-    """Template surface samples (tracks) per body topology."""
-    no_classic: bool = False
-    """Verify VCs alone, without the pair's classic matches."""
-    no_keypoints: bool = False
-    """Do not use 2D keypoints as VCs."""
-    no_dense_map: bool = False
-    """Ignore the dense surface maps (mesh projections only)."""
-    dry_run: bool = False
-    """Compute and report, write nothing."""
-    no_progress: bool = False
-    """No progress bar."""
+    """Image folder (accepted for symmetry with COLMAP; VCs need no pixels)."""
+    options: tyro.conf.OmitArgPrefixes[AugmentOptions] = AugmentOptions()
     verbose: bool = False
     """Debug logging."""
 
@@ -137,26 +123,11 @@ class Map:
     priors: Path | None = None
     """Priors (default: those `augment` recorded); the auto mapper checks its model
     against the meshes and the mesh mapper starts from them."""
-    mapper: str = "auto"
-    """auto (incremental, checked against the mesh prior), incremental, global or mesh."""
-    init_min_num_inliers: int = 50
-    """Minimum inliers of the initial pair (COLMAP: 100)."""
-    init_min_tri_angle_deg: float = 4.0
-    """Minimum triangulation angle of the initial pair, degrees (COLMAP: 16)."""
-    abs_pose_min_num_inliers: int = 30
-    """Minimum 2D-3D inliers to register an image."""
-    filter_max_reproj_error_px: float = 8.0
-    """Observations reprojecting worse are filtered, pixels (COLMAP: 4)."""
-    refine_intrinsics: bool = False
-    """Refine focal length and distortion (default: known intrinsics)."""
-    no_ba: bool = False
-    """Initialisation only: no COLMAP bundle adjustment (ablation)."""
+    options: tyro.conf.OmitArgPrefixes[MappingOptions] = MappingOptions()
     gba: bool = True
     """Run the generalized bundle adjustment after mapping (--no-gba to skip)."""
     overwrite: bool = False
     """Replace a non-empty OUTPUT_PATH."""
-    seed: int = 0
-    """Seed of COLMAP's randomness."""
     verbose: bool = False
     """Debug logging."""
 
@@ -290,24 +261,9 @@ def _run_priors(cmd: Priors) -> int:
 
 
 def _run_augment(cmd: Augment) -> int:
-    from .augment import AugmentOptions, run
-    from .matching import MatchingOptions
-    from .verification import VerificationOptions
+    from .augment import run
 
-    options = AugmentOptions(
-        matching=MatchingOptions(
-            num_samples=cmd.num_samples,
-            consistency_tolerance_cm=cmd.consistency_tolerance_cm,
-            use_keypoints=not cmd.no_keypoints,
-            use_dense_map=not cmd.no_dense_map,
-        ),
-        verification=VerificationOptions(
-            max_error_px=cmd.max_error_px, min_num_inliers=cmd.min_num_inliers
-        ),
-        use_classic_matches=not cmd.no_classic,
-        dry_run=cmd.dry_run,
-        show_progress=not cmd.no_progress,
-    )
+    options = cmd.options
     summary = run(cmd.database, cmd.priors, options)
     lines = ["| image 1 | image 2 | people | VCs | inliers | ratio | co-visible | virtual | keypoint | classic inliers |",
              "|---|---|---|---|---|---|---|---|---|---|"]
@@ -330,24 +286,11 @@ def _run_augment(cmd: Augment) -> int:
 
 
 def _run_map(cmd: Map) -> int:
-    from .mapping import Mapper, MappingOptions, run
+    from .mapping import run
 
     rec, summary = run(
-        cmd.database,
-        cmd.image_path,
-        cmd.output_path,
-        MappingOptions(
-            mapper=Mapper(cmd.mapper),
-            init_min_num_inliers=cmd.init_min_num_inliers,
-            init_min_tri_angle_deg=cmd.init_min_tri_angle_deg,
-            abs_pose_min_num_inliers=cmd.abs_pose_min_num_inliers,
-            filter_max_reproj_error_px=cmd.filter_max_reproj_error_px,
-            refine_intrinsics=cmd.refine_intrinsics,
-            bundle_adjustment=not cmd.no_ba,
-            seed=cmd.seed,
-        ),
-        overwrite=cmd.overwrite,
-        priors_path=cmd.priors,
+        cmd.database, cmd.image_path, cmd.output_path, cmd.options,
+        overwrite=cmd.overwrite, priors_path=cmd.priors,
     )
     sys.stdout.write(
         f"registered {summary.num_registered}/{summary.num_images} images "
@@ -416,7 +359,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `colmap-vc` console script."""
     try:
         cmd = tyro.extras.subcommand_cli_from_dict(
-            COMMANDS, args=list(sys.argv[1:] if argv is None else argv), prog="colmap-vc"
+            COMMANDS,
+            args=list(sys.argv[1:] if argv is None else argv),
+            prog="colmap-vc",
+            config=(tyro.conf.EnumChoicesFromValues,),
         )
     except SystemExit as exc:  # tyro exits on --help (0) and on usage errors (2)
         return int(exc.code or 0)

@@ -25,7 +25,7 @@ def test_usage_error_exits_2():
 def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
     db = tmp_path / "database.db"
     shutil.copyfile(dome_scene / "database.db", db)
-    assert main(["augment", str(db), "--priors", str(dome_scene / "gt" / "priors"), "--no-progress"]) == 0
+    assert main(["augment", str(db), "--priors", str(dome_scene / "gt" / "priors"), "--no-show-progress"]) == 0
     out = capsys.readouterr().out
     assert "pairs verified" in out and "cam00.jpg" in out
     assert main(["map", str(db), "--image-path", str(dome_scene / "images"),
