@@ -69,6 +69,8 @@ class Eval:
     """Ground-truth COLMAP model folder."""
     output: Path | None = None
     """Write the metrics as JSON here."""
+    plot: Path | None = None
+    """Write the cumulative error curve as a PNG here."""
     verbose: bool = False
     """Debug logging."""
 
@@ -234,6 +236,14 @@ def _run_eval(cmd: Eval) -> int:
     if cmd.output is not None:
         cmd.output.write_text(json.dumps(metrics.to_dict(), indent=1))
         logger.info("metrics written to %s", cmd.output)
+    if cmd.plot is not None:
+        import numpy as np
+
+        from .report import error_curve_figure
+
+        fig = error_curve_figure({"prediction": np.array([p.error_deg for p in metrics.pairs])})
+        fig.savefig(cmd.plot, dpi=110)
+        logger.info("error curve written to %s", cmd.plot)
     return 0
 
 

@@ -497,6 +497,11 @@ def _pose_figures(
 
 def _error_curve(curves: Mapping[str, FloatArray]) -> str:
     """Cumulative pose-error curves (fraction of pairs below each error), as a URI."""
+    return _figure_uri(error_curve_figure(curves))
+
+
+def error_curve_figure(curves: Mapping[str, FloatArray]) -> Figure:
+    """Cumulative pose-error curves: per method, the fraction of pairs below each error."""
     fig = _new_figure(6.4, 4.6)
     ax = fig.add_subplot()
     grid = np.linspace(0.0, 180.0, 721)
@@ -515,7 +520,7 @@ def _error_curve(curves: Mapping[str, FloatArray]) -> str:
     ax.set_ylabel("fraction of image pairs")
     ax.grid(alpha=0.3)
     ax.legend(loc="lower right", fontsize=8)
-    return _figure_uri(fig)
+    return fig
 
 
 # ---------------------------------------------------------------- HTML pieces

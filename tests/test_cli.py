@@ -35,8 +35,14 @@ def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
     assert main(["map", str(db), "--image-path", str(dome_scene / "images"),
                  "--output-path", str(tmp_path / "sparse"), "--no-gba"]) == 1
     metrics = tmp_path / "m.json"
-    assert main(["eval", str(tmp_path / "sparse"), str(dome_scene / "gt" / "sparse"), "--output", str(metrics)]) == 0
+    plot = tmp_path / "curve.png"
+    assert main(["eval", str(tmp_path / "sparse"), str(dome_scene / "gt" / "sparse"),
+                 "--output", str(metrics), "--plot", str(plot)]) == 0
     assert json.loads(metrics.read_text())["num_registered"] == 6
+    import cv2
+
+    curve = cv2.imread(str(plot))
+    assert curve is not None and curve.shape[0] > 200 and (curve < 250).any()
     assert main(["strip", str(db)]) == 0
 
 
