@@ -67,6 +67,9 @@ class MappingOptions:
     """Observations reprojecting worse are filtered, pixels (COLMAP: 4)."""
     multiple_models: bool = True
     """Allow several models (the largest one is returned)."""
+    min_model_size: int = 2
+    """Smallest model kept, in images (COLMAP: 10, which silently drops a two-view or
+    small extreme-view model)."""
     bundle_adjustment: bool = True
     """Run COLMAP's local and global bundle adjustment (off: initialisation only, i.e.
     registration and triangulation with one global BA iteration, COLMAP's minimum)."""
@@ -93,6 +96,8 @@ class MappingSummary:
 
 # COLMAP's own defaults, for the classic baseline.
 COLMAP_DEFAULTS = MappingOptions(
+    mapper=Mapper.INCREMENTAL,
+    min_model_size=10,
     init_min_num_inliers=100,
     init_min_tri_angle_deg=16.0,
     filter_max_reproj_error_px=4.0,
@@ -109,6 +114,7 @@ def incremental_options(options: MappingOptions) -> pycolmap.IncrementalPipeline
         ba_refine_principal_point=False,
         ba_refine_extra_params=options.refine_intrinsics,
         random_seed=options.seed,
+        min_model_size=options.min_model_size,
     )
     m = pipeline.mapper
     m.init_min_num_inliers = options.init_min_num_inliers
@@ -188,6 +194,78 @@ def mesh_initialised(
         if rec.num_points3D() == 0:
             return None
         _ceres_ba(rec, loss_scale_px=options.filter_max_reproj_error_px / 2)
+    rec.write(output_dir)
+    return rec
+
+
+def two_view_initialised(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    options: MappingOptions,
+    priors: ScenePriors | None = None,
+) -> pycolmap.Reconstruction | None:
+    """A two-image model from the pair's verified two-view geometry, triangulated.
+
+    COLMAP's incremental mapper discards a model made of its initial pair only, so a
+    two-image scene (the paper's two-frame task) is built here: camera 1 at the
+    origin, camera 2 at the verified relative pose (unit baseline), the VC and
+    classic inlier tracks triangulated. No Ceres BA (it cannot fix a two-camera
+    gauge); the generalized BA refines it with an explicit gauge.
+    """
+    views = database.read_views(database_path)
+    geometries = database.read_two_view_geometries(database_path, include_vc=True)
+    posed = {p: row for p, row in geometries.items() if row.cam2_from_cam1 is not None}
+    if not posed:
+        return None
+    (id1, id2), row = max(posed.items(), key=lambda kv: len(kv[1].inlier_matches))
+    rel = row.cam2_from_cam1
+    if priors is not None and options.mapper is Mapper.AUTO:
+        names = {int(i): n for i, n in zip(views.image_ids, views.image_names, strict=True)}
+        mesh = mesh_alignment_poses(priors, image_names={names[id1], names[id2]})
+        if len(mesh) == 2:
+            mesh_rel = relative_pose(mesh[names[id1]], mesh[names[id2]])
+            deviation = rotation_angle_deg(rel[:, :3] @ mesh_rel[:, :3].T)
+            if deviation > options.max_prior_deviation_deg:
+                logger.info("the two-view geometry contradicts the mesh prior (%.0f deg): "
+                            "starting from the meshes' relative pose", deviation)
+                t = mesh_rel[:, 3] / max(np.linalg.norm(mesh_rel[:, 3]), 1e-12)
+                rel = np.c_[mesh_rel[:, :3], t]
+    kp1 = database.read_keypoints(database_path, int(id1), include_vc=True)
+    kp2 = database.read_keypoints(database_path, int(id2), include_vc=True)
+    rec = pycolmap.Reconstruction()
+    for camera in views.cameras.values():
+        rec.add_camera_with_trivial_rig(camera)
+    for image_id, pose, kp in ((id1, np.c_[np.eye(3), np.zeros(3)], kp1), (id2, rel, kp2)):
+        i = int(np.flatnonzero(views.image_ids == image_id)[0])
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=views.image_names[i], keypoints=kp, camera_id=int(views.camera_ids[i]), image_id=int(image_id)),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(pose[:, :3]), pose[:, 3]),
+        )
+    # Midpoint triangulation of the inlier matches (vectorized), cheirality-checked.
+    m = row.inlier_matches
+    cam1 = views.cameras[int(views.camera_ids[views.image_ids == id1][0])]
+    cam2 = views.cameras[int(views.camera_ids[views.image_ids == id2][0])]
+    d1 = np.c_[cam1.cam_from_img(kp1[m[:, 0]]), np.ones(len(m))]
+    d2 = np.c_[cam2.cam_from_img(kp2[m[:, 1]]), np.ones(len(m))] @ rel[:, :3]  # in cam 1
+    c2 = -rel[:, :3].T @ rel[:, 3]
+    # Closest points of the rays o1 + s d1 and c2 + u d2.
+    a, b, c = (d1 * d1).sum(1), (d1 * d2).sum(1), (d2 * d2).sum(1)
+    w = -c2
+    d, e = (d1 * w).sum(1), (d2 * w).sum(1)
+    den = np.maximum(a * c - b * b, 1e-12)
+    s_ = (b * e - c * d) / den
+    u_ = (a * e - b * d) / den
+    xyz = 0.5 * (s_[:, None] * d1 + (c2 + u_[:, None] * d2))
+    ok = (s_ > 0) & (u_ > 0)
+    for (i1, i2), x in zip(m[ok], xyz[ok], strict=True):  # one pycolmap call per point
+        track = pycolmap.Track()
+        track.add_element(int(id1), int(i1))
+        track.add_element(int(id2), int(i2))
+        rec.add_point3D(x, track)
+    if rec.num_points3D() == 0:
+        return None
+    output_dir.mkdir(parents=True, exist_ok=True)
     rec.write(output_dir)
     return rec
 
@@ -273,7 +351,10 @@ def run(
     pycolmap.set_random_seed(options.seed)
     t0 = time.perf_counter()
     priors = _load_priors(database_path, priors_path, views.image_names)
-    if options.mapper is Mapper.MESH:
+    if num_images == 2 and options.mapper in (Mapper.AUTO, Mapper.INCREMENTAL):
+        rec = two_view_initialised(database_path, image_dir, output_dir / "0", options, priors)
+        models = {} if rec is None else {0: rec}
+    elif options.mapper is Mapper.MESH:
         if priors is None:
             raise ValueError("the mesh mapper needs the priors (--priors)")
         rec = mesh_initialised(database_path, image_dir, output_dir / "0", priors, options)
@@ -299,7 +380,7 @@ def run(
         )
     best_key = max(models, key=lambda k: models[k].num_reg_images(), default=None)
     best = None if best_key is None else models[best_key]
-    if options.mapper is Mapper.AUTO and priors is not None:
+    if options.mapper is Mapper.AUTO and priors is not None and num_images > 2:
         deviation = 180.0 if best is None else prior_deviation_deg(best, priors)
         if deviation > options.max_prior_deviation_deg:
             logger.info(

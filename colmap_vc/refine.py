@@ -8,10 +8,12 @@ PLY files of the VC tuples and the scene points.
 from __future__ import annotations
 
 import logging
+import math
 import time
 from dataclasses import dataclass
 from pathlib import Path
 
+import numpy as np
 import pycolmap
 
 from . import database
@@ -30,16 +32,40 @@ class RefineSummary:
     elapsed_s: float
 
 
+def _vc_budget(
+    rec: pycolmap.Reconstruction,
+    pairs: list,
+    num_classic: dict[int, int],
+    variance_ratio: float,
+) -> int | None:
+    """VC tuples per pair for GBA: None (all) unless the model has classic points."""
+    num_classic_obs = 0
+    for image in rec.images.values():  # loop over images, vectorized over points
+        if image.has_pose:
+            idx = np.asarray(image.get_observation_point2D_idxs(), dtype=np.int64)
+            num_classic_obs += int((idx < num_classic.get(image.image_id, 0)).sum())
+    if num_classic_obs == 0 or not pairs:
+        return None
+    median = float(np.median([int(p.is_inlier.sum()) for p in pairs]))
+    return max(5, math.ceil(median / variance_ratio))
+
+
 def refine_model(
     database_path: Path,
     rec: pycolmap.Reconstruction,
     output_dir: Path | None,
     options: GbaOptions | None = None,
+    vc_to_classic_variance: float = 36.0,
 ) -> RefineSummary:
     """GBA of ``rec`` with the database's VCs; writes the refined model to output_dir.
 
     A database that was never augmented has no VCs: the model is returned unchanged
-    and the pass says so.
+    and the pass says so. When the model also holds classic (SIFT) observations, VCs
+    count as noisier: a VC pixel carries a few pixels of prior error against a
+    fraction of a pixel for SIFT (variance ratio ``vc_to_classic_variance``, about
+    (3 px / 0.5 px)^2). The solver weighs all residuals alike, so the VC tuples of
+    each pair are thinned by that ratio instead (an even subsample), which keeps
+    classic matches from being drowned out on overlapping views.
     """
     t0 = time.perf_counter()
     keypoints, pairs = database.read_virtual_correspondences(database_path)
@@ -48,8 +74,10 @@ def refine_model(
         return RefineSummary(reconstruction=rec, result=None, output_dir=None, elapsed_s=0.0)
     views = database.read_views(database_path)
     num_classic = dict(zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True))
+    cap = _vc_budget(rec, pairs, num_classic, vc_to_classic_variance)
     refined, result = refine_reconstruction(
-        rec, keypoints, pairs, options, image_id_to_num_classic=num_classic
+        rec, keypoints, pairs, options, image_id_to_num_classic=num_classic,
+        max_vcs_per_pair=cap,
     )
     if output_dir is not None:
         output_dir.mkdir(parents=True, exist_ok=True)
