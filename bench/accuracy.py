@@ -27,7 +27,6 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
-
 from common import DOCS, OUT, machine, setup_logging, write_json
 
 from colmap_vc import augment, database, mapping
@@ -38,8 +37,8 @@ from colmap_vc.evaluation import (
     PairError,
     evaluate_poses,
     evaluate_reconstruction,
-    poses_by_name,
     pose_auc,
+    poses_by_name,
 )
 from colmap_vc.priors import read_priors
 from colmap_vc.synthetic import SynthOptions, generate
@@ -48,7 +47,14 @@ logger = logging.getLogger("bench.accuracy")
 
 LEVELS = {"clean": "gt/priors", "realistic": "priors", "hard": "priors_hard"}
 PAIR_ANGLES = (15.0, 45.0, 75.0, 105.0, 135.0, 165.0)
-METHODS = ("classic COLMAP", "mesh alignment", "VC init", "VC + BA", "VC + GBA", "VC + classic + GBA")
+METHODS = (
+    "classic COLMAP",
+    "mesh alignment",
+    "VC init",
+    "VC + BA",
+    "VC + GBA",
+    "VC + classic + GBA",
+)
 
 
 def _gba_available() -> bool:
@@ -63,21 +69,46 @@ def scene(preset: str, people: int, seed: int, angle: float | None = None) -> Pa
     tag = f"{preset}_p{people}_s{seed}" + ("" if angle is None else f"_a{int(angle)}")
     path = OUT / "scenes" / f"acc_{tag}"
     if not (path / "database.db").exists() or not (path / "priors_hard").exists():
-        generate(preset, path, SynthOptions(seed=seed, num_people=people, pair_angle_deg=angle,
-                                            extra_noise=("hard",), overwrite=True))
+        generate(
+            preset,
+            path,
+            SynthOptions(
+                seed=seed,
+                num_people=people,
+                pair_angle_deg=angle,
+                extra_noise=("hard",),
+                overwrite=True,
+            ),
+        )
     return path
 
 
-def run_vc(scene_dir: Path, priors_dir: Path, work: Path, *, with_classic: bool, ba: bool, gba: bool):
+def run_vc(
+    scene_dir: Path,
+    priors_dir: Path,
+    work: Path,
+    *,
+    with_classic: bool,
+    ba: bool,
+    gba: bool,
+):
     """Augment a copy of the scene's database and map it; returns the model or None."""
     work.mkdir(parents=True, exist_ok=True)
     db = work / "database.db"
     shutil.copyfile(scene_dir / "database.db", db)
     if not with_classic:
         database.drop_classic_matches(db)
-    augment.run(db, priors_dir, augment.AugmentOptions(show_progress=False, use_classic_matches=with_classic))
-    rec, _ = mapping.run_incremental(db, scene_dir / "images", work / "sparse",
-                                     mapping.MappingOptions(bundle_adjustment=ba, show_progress=False))
+    augment.run(
+        db,
+        priors_dir,
+        augment.AugmentOptions(show_progress=False, use_classic_matches=with_classic),
+    )
+    rec, _ = mapping.run_incremental(
+        db,
+        scene_dir / "images",
+        work / "sparse",
+        mapping.MappingOptions(bundle_adjustment=ba, show_progress=False),
+    )
     if rec is not None and gba:
         from colmap_vc.refine import refine_model
 
@@ -85,19 +116,32 @@ def run_vc(scene_dir: Path, priors_dir: Path, work: Path, *, with_classic: bool,
     return rec
 
 
-def evaluate_scene(scene_dir: Path, level: str, work: Path, classic: Metrics) -> dict[str, Metrics]:
+def evaluate_scene(
+    scene_dir: Path, level: str, work: Path, classic: Metrics
+) -> dict[str, Metrics]:
     gt = pycolmap.Reconstruction(scene_dir / "gt" / "sparse")
     gt_poses = poses_by_name(gt)
     priors = read_priors(scene_dir / LEVELS[level])
-    out = {"classic COLMAP": classic,
-           "mesh alignment": evaluate_poses(mesh_alignment_poses(priors), gt_poses)}
+    out = {
+        "classic COLMAP": classic,
+        "mesh alignment": evaluate_poses(mesh_alignment_poses(priors), gt_poses),
+    }
     has_gba = _gba_available()
     arms = {"VC init": (False, False, False), "VC + BA": (False, True, False)}
     if has_gba:
-        arms |= {"VC + GBA": (False, True, True), "VC + classic + GBA": (True, True, True)}
+        arms |= {
+            "VC + GBA": (False, True, True),
+            "VC + classic + GBA": (True, True, True),
+        }
     for name, (with_classic, ba, gba) in arms.items():
-        rec = run_vc(scene_dir, scene_dir / LEVELS[level], work / name.replace(" ", "_").replace("+", "p"),
-                     with_classic=with_classic, ba=ba, gba=gba)
+        rec = run_vc(
+            scene_dir,
+            scene_dir / LEVELS[level],
+            work / name.replace(" ", "_").replace("+", "p"),
+            with_classic=with_classic,
+            ba=ba,
+            gba=gba,
+        )
         out[name] = evaluate_reconstruction(rec, gt)
     return out
 
@@ -111,16 +155,22 @@ def pooled(metrics: list[Metrics]) -> dict:
         "median_error_deg": float(np.median(errors)) if len(errors) else float("nan"),
         "registered": sum(m.num_registered for m in metrics),
         "images": sum(m.num_images for m in metrics),
-        "num_pairs": int(len(errors)),
+        "num_pairs": len(errors),
     }
 
 
 def table(rows: dict[str, dict], caption: str) -> str:
-    lines = [f"**{caption}**", "", "| method | registered | AUC@15 | AUC@30 | AUC@45 | median err (deg) |",
-             "|---|---|---|---|---|---|"]
+    lines = [
+        f"**{caption}**",
+        "",
+        "| method | registered | AUC@15 | AUC@30 | AUC@45 | median err (deg) |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, r in rows.items():
-        lines.append(f"| {name} | {r['registered']}/{r['images']} | {r['auc']['15']:.1f} | {r['auc']['30']:.1f} | "
-                     f"{r['auc']['45']:.1f} | {r['median_error_deg']:.1f} |")
+        lines.append(
+            f"| {name} | {r['registered']}/{r['images']} | {r['auc']['15']:.1f} | {r['auc']['30']:.1f} | "
+            f"{r['auc']['45']:.1f} | {r['median_error_deg']:.1f} |"
+        )
     return "\n".join(lines)
 
 
@@ -143,10 +193,18 @@ def angle_plot(pairs_by_method: dict[str, list[PairError]], path: Path) -> None:
         centres = (bins[:-1] + bins[1:]) / 2
         ax[0].plot(centres, med, marker="o", label=name)
         ax[1].plot(centres, auc30, marker="o", label=name)
-    ax[0].set(xlabel="ground-truth angle between the two cameras (deg)", ylabel="median pose error (deg)",
-              yscale="log", title="Pose error vs camera angle (realistic priors)")
-    ax[1].set(xlabel="ground-truth angle between the two cameras (deg)", ylabel="AUC@30 (%)",
-              ylim=(0, 100), title="AUC@30 vs camera angle")
+    ax[0].set(
+        xlabel="ground-truth angle between the two cameras (deg)",
+        ylabel="median pose error (deg)",
+        yscale="log",
+        title="Pose error vs camera angle (realistic priors)",
+    )
+    ax[1].set(
+        xlabel="ground-truth angle between the two cameras (deg)",
+        ylabel="AUC@30 (%)",
+        ylim=(0, 100),
+        title="AUC@30 vs camera angle",
+    )
     ax[0].legend(fontsize=8)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
@@ -157,14 +215,23 @@ def angle_plot(pairs_by_method: dict[str, list[PairError]], path: Path) -> None:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
-    parser.add_argument("--quick", action="store_true", help="one seed, no pair sweep, realistic only")
+    parser.add_argument(
+        "--quick", action="store_true", help="one seed, no pair sweep, realistic only"
+    )
     args = parser.parse_args()
     setup_logging()
     seeds = args.seeds[:1] if args.quick else args.seeds
     levels = ["realistic"] if args.quick else list(LEVELS)
-    groups = {"dome, 1 person": ("dome", 1, None), "dome, 3 people": ("dome", 3, None), "dense, 1 person": ("dense", 1, None)}
+    groups = {
+        "dome, 1 person": ("dome", 1, None),
+        "dome, 3 people": ("dome", 3, None),
+        "dense, 1 person": ("dense", 1, None),
+    }
     if not args.quick:
-        groups |= {f"pair, {int(a) - 15}-{int(a) + 15} deg": ("pair", 1, a) for a in PAIR_ANGLES}
+        groups |= {
+            f"pair, {int(a) - 15}-{int(a) + 15} deg": ("pair", 1, a)
+            for a in PAIR_ANGLES
+        }
     t0 = time.perf_counter()
     results: dict[str, dict[str, dict[str, list[Metrics]]]] = {}
     for group, (preset, people, angle) in groups.items():
@@ -174,17 +241,39 @@ def main() -> None:
             _, classic = run_classic(scene_dir, work / "classic")
             for level in levels:
                 logger.info("%s seed %d, %s priors", group, seed, level)
-                for method, m in evaluate_scene(scene_dir, level, work / level, classic).items():
-                    results.setdefault(group, {}).setdefault(level, {}).setdefault(method, []).append(m)
-    summary = {g: {lv: {meth: pooled(ms) for meth, ms in by_m.items()} for lv, by_m in by_l.items()}
-               for g, by_l in results.items()}
-    write_json("accuracy.json", {"machine": machine(), "seeds": seeds, "summary": summary,
-                                 "elapsed_s": time.perf_counter() - t0})
-    cmd = f".venv/bin/python bench/accuracy.py --seeds {' '.join(map(str, seeds))}" + (" --quick" if args.quick else "")
-    doc = ["# Results", "",
-           f"Generated by `{cmd}` (`make bench`) at commit {machine()['commit']}; every method runs on the same "
-           "images in the same run. A pair with an unregistered image counts as 180 degrees; AUC as in "
-           "SuperGlue (docs/benchmark.md has the set-up checks and speed).", ""]
+                for method, m in evaluate_scene(
+                    scene_dir, level, work / level, classic
+                ).items():
+                    results.setdefault(group, {}).setdefault(level, {}).setdefault(
+                        method, []
+                    ).append(m)
+    summary = {
+        g: {
+            lv: {meth: pooled(ms) for meth, ms in by_m.items()}
+            for lv, by_m in by_l.items()
+        }
+        for g, by_l in results.items()
+    }
+    write_json(
+        "accuracy.json",
+        {
+            "machine": machine(),
+            "seeds": seeds,
+            "summary": summary,
+            "elapsed_s": time.perf_counter() - t0,
+        },
+    )
+    cmd = f".venv/bin/python bench/accuracy.py --seeds {' '.join(map(str, seeds))}" + (
+        " --quick" if args.quick else ""
+    )
+    doc = [
+        "# Results",
+        "",
+        f"Generated by `{cmd}` (`make bench`) at commit {machine()['commit']}; every method runs on the same "
+        "images in the same run. A pair with an unregistered image counts as 180 degrees; AUC as in "
+        "SuperGlue (docs/benchmark.md has the set-up checks and speed).",
+        "",
+    ]
     doc.append("## Table 1 analog: methods on each dataset (realistic priors)\n")
     for group in groups:
         if group in summary and "realistic" in summary[group]:
@@ -197,11 +286,19 @@ def main() -> None:
     pairs_by_method: dict[str, list[PairError]] = {}
     for group in results:
         for method, ms in results[group].get("realistic", {}).items():
-            pairs_by_method.setdefault(method, []).extend(p for m in ms for p in m.pairs)
+            pairs_by_method.setdefault(method, []).extend(
+                p for m in ms for p in m.pairs
+            )
     angle_plot(pairs_by_method, DOCS / "img" / "error_vs_angle.png")
-    doc += ["## Error against the camera angle (Fig. 8/9 analog)", "",
-            "All image pairs of all scenes above, realistic priors, binned by the ground-truth angle "
-            "between the two cameras.", "", "![error vs angle](img/error_vs_angle.png)", ""]
+    doc += [
+        "## Error against the camera angle (Fig. 8/9 analog)",
+        "",
+        "All image pairs of all scenes above, realistic priors, binned by the ground-truth angle "
+        "between the two cameras.",
+        "",
+        "![error vs angle](img/error_vs_angle.png)",
+        "",
+    ]
     (DOCS / "results.md").write_text("\n".join(doc))
     print("\n".join(doc))
 

@@ -21,7 +21,6 @@ import time
 
 import numpy as np
 import pycolmap
-
 from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
 
 from colmap_vc import raycast
@@ -43,7 +42,9 @@ def raycast_ratio(scene, repeats: int) -> dict:
     ours = raycast.build_scene(meshes)
     raw = rtcore_scene.EmbreeScene()
     for v, f in meshes:
-        mesh_construction.TriangleMesh(scene=raw, vertices=v.astype(np.float32), indices=f.astype(np.int32))
+        mesh_construction.TriangleMesh(
+            scene=raw, vertices=v.astype(np.float32), indices=f.astype(np.int32)
+        )
     xy = raycast.pixel_grid(image.camera.width, image.camera.height)
     dirs = raycast.rays_cam(image.camera, xy)
     origins = np.zeros_like(dirs)
@@ -83,7 +84,11 @@ def main() -> None:
     setup_logging()
     scene = OUT / "scenes" / "speed_dome16"
     if not (scene / "database.db").exists():
-        generate("dome", scene, SynthOptions(seed=100, num_cameras=16, num_people=3, overwrite=True))
+        generate(
+            "dome",
+            scene,
+            SynthOptions(seed=100, num_cameras=16, num_people=3, overwrite=True),
+        )
     rays = raycast_ratio(scene, args.repeats)
     runs = []
     for _ in range(args.repeats):
@@ -92,23 +97,35 @@ def main() -> None:
         shutil.copyfile(scene / "database.db", db)
         t0 = time.perf_counter()
         summary = run(db, scene / "priors", AugmentOptions(show_progress=False))
-        runs.append({"total_s": time.perf_counter() - t0, "timings_s": summary.timings_s,
-                     "pairs": len(summary.pairs), "verified": summary.num_verified_pairs})
+        runs.append(
+            {
+                "total_s": time.perf_counter() - t0,
+                "timings_s": summary.timings_s,
+                "pairs": len(summary.pairs),
+                "verified": summary.num_verified_pairs,
+            }
+        )
     best = min(runs, key=lambda r: r["total_s"])
-    write_json("augment_speed.json", {"machine": machine(), "raycast": rays, "augment_runs": runs})
-    body = "\n".join([
-        "| measure | value | goal |", "|---|---|---|",
-        f"| first hits (float64-refined) / raw Embree first hits, rays/s | **{rays['ratio_first_hits']:.2f}** "
-        f"({rays['first_hits_rays_per_s'] / 1e6:.2f} M vs {rays['raw_embree_rays_per_s'] / 1e6:.2f} M rays/s) | >= 0.7 |",
-        f"| all hits / raw Embree first hits, hits/s | {rays['ratio_all_hits_per_hit']:.2f} "
-        f"({rays['num_all_hits']} hits from {rays['num_rays']} rays) | |",
-        f"| `augment` wall time, 16 views, 3 people | **{best['total_s']:.1f} s** "
-        f"({', '.join(f'{k} {v:.1f}' for k, v in best['timings_s'].items())}) | <= 10 s |",
-        f"| pairs with VCs / verified | {best['pairs']} / {best['verified']} | |",
-        "",
-        f"Best of {args.repeats} runs at commit {machine()['commit']}, "
-        "`.venv/bin/python bench/augment_speed.py`; raw numbers in `bench/out/augment_speed.json`.",
-    ])
+    write_json(
+        "augment_speed.json",
+        {"machine": machine(), "raycast": rays, "augment_runs": runs},
+    )
+    body = "\n".join(
+        [
+            "| measure | value | goal |",
+            "|---|---|---|",
+            f"| first hits (float64-refined) / raw Embree first hits, rays/s | **{rays['ratio_first_hits']:.2f}** "
+            f"({rays['first_hits_rays_per_s'] / 1e6:.2f} M vs {rays['raw_embree_rays_per_s'] / 1e6:.2f} M rays/s) | >= 0.7 |",
+            f"| all hits / raw Embree first hits, hits/s | {rays['ratio_all_hits_per_hit']:.2f} "
+            f"({rays['num_all_hits']} hits from {rays['num_rays']} rays) | |",
+            f"| `augment` wall time, 16 views, 3 people | **{best['total_s']:.1f} s** "
+            f"({', '.join(f'{k} {v:.1f}' for k, v in best['timings_s'].items())}) | <= 10 s |",
+            f"| pairs with VCs / verified | {best['pairs']} / {best['verified']} | |",
+            "",
+            f"Best of {args.repeats} runs at commit {machine()['commit']}, "
+            "`.venv/bin/python bench/augment_speed.py`; raw numbers in `bench/out/augment_speed.json`.",
+        ]
+    )
     replace_section(DOCS / "benchmark.md", "augment-speed", body)
     print(body)
 

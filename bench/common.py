@@ -16,7 +16,11 @@ DOCS = ROOT / "docs"
 
 
 def setup_logging() -> None:
-    logging.basicConfig(level=logging.INFO, format="[%(asctime)s %(name)s] %(message)s", datefmt="%H:%M:%S")
+    logging.basicConfig(
+        level=logging.INFO,
+        format="[%(asctime)s %(name)s] %(message)s",
+        datefmt="%H:%M:%S",
+    )
     import pycolmap
 
     pycolmap.logging.minloglevel = 2
@@ -24,8 +28,18 @@ def setup_logging() -> None:
 
 def machine() -> dict:
     """Where the numbers were measured."""
-    commit = subprocess.run(["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True).stdout.strip()
-    return {"python": sys.version.split()[0], "platform": platform.platform(), "cpus": os.cpu_count(), "commit": commit}
+    commit = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    ).stdout.strip()
+    return {
+        "python": sys.version.split()[0],
+        "platform": platform.platform(),
+        "cpus": os.cpu_count(),
+        "commit": commit,
+    }
 
 
 def write_json(name: str, payload: dict) -> Path:

@@ -118,14 +118,18 @@ class AugmentSummary:
         return sum(p.verified for p in self.pairs)
 
 
-def _template_samples(priors: ScenePriors, num_samples: int) -> dict[str, TemplateSamples]:
+def _template_samples(
+    priors: ScenePriors, num_samples: int
+) -> dict[str, TemplateSamples]:
     """Samples per topology, from the first mesh of it (images in name order)."""
     out: dict[str, TemplateSamples] = {}
     for name in sorted(priors.images):
         for person in priors.images[name].persons:
             key = template_key(person)
             if key not in out:
-                out[key] = sample_template(person.vertices_cam, person.faces, key, num_samples)
+                out[key] = sample_template(
+                    person.vertices_cam, person.faces, key, num_samples
+                )
     return out
 
 
@@ -150,8 +154,14 @@ def observe_image(
 def _assignments(n1: int, n2: int) -> list[list[tuple[int, int]]]:
     """All injective assignments of min(n1, n2) people between two images."""
     if n1 <= n2:
-        return [list(zip(range(n1), perm, strict=True)) for perm in itertools.permutations(range(n2), n1)]
-    return [list(zip(perm, range(n2), strict=True)) for perm in itertools.permutations(range(n1), n2)]
+        return [
+            list(zip(range(n1), perm, strict=True))
+            for perm in itertools.permutations(range(n2), n1)
+        ]
+    return [
+        list(zip(perm, range(n2), strict=True))
+        for perm in itertools.permutations(range(n1), n2)
+    ]
 
 
 def _concat(matches: list[tuple[int, int, PersonMatches]]) -> tuple[IndexArray, ...]:
@@ -163,7 +173,14 @@ def _concat(matches: list[tuple[int, int, PersonMatches]]) -> tuple[IndexArray, 
         np.concatenate(parts)
         for parts in zip(
             *[
-                (np.full(len(m), k1), m.idx1, np.full(len(m), k2), m.idx2, m.kind, m.track_id)
+                (
+                    np.full(len(m), k1),
+                    m.idx1,
+                    np.full(len(m), k2),
+                    m.idx2,
+                    m.kind,
+                    m.track_id,
+                )
                 for k1, k2, m in matches
             ],
             strict=True,
@@ -171,7 +188,9 @@ def _concat(matches: list[tuple[int, int, PersonMatches]]) -> tuple[IndexArray, 
     )
 
 
-def _gather(obs: list[PersonObservations], person: IndexArray, row: IndexArray, attr: str) -> FloatArray:
+def _gather(
+    obs: list[PersonObservations], person: IndexArray, row: IndexArray, attr: str
+) -> FloatArray:
     """Rows ``row`` of attribute ``attr`` of the observations of people ``person``."""
     first = getattr(obs[0], attr) if obs else np.zeros((0, 2))
     out = np.zeros((len(row), *first.shape[1:]))
@@ -187,7 +206,11 @@ def _codes(person: IndexArray, row: IndexArray) -> IndexArray:
 
 
 def _thickness(
-    x1: FloatArray, x2: FloatArray, p1: FloatArray, p2: FloatArray, geometry: PairGeometry | None
+    x1: FloatArray,
+    x2: FloatArray,
+    p1: FloatArray,
+    p2: FloatArray,
+    geometry: PairGeometry | None,
 ) -> tuple[FloatArray, FloatArray]:
     """Initial (a, b) with X2 = X1 + a (X1 - o1) + b (o2 - o1), in camera 1's frame.
 
@@ -217,6 +240,56 @@ def _thickness(
     return sol[:, 0], sol[:, 1]
 
 
+def _associate_and_verify(
+    obs1: list[PersonObservations],
+    obs2: list[PersonObservations],
+    cam1: pycolmap.Camera,
+    cam2: pycolmap.Camera,
+    classic_xy1: FloatArray | None,
+    classic_xy2: FloatArray | None,
+    options: AugmentOptions,
+) -> tuple[Verification, tuple[IndexArray, ...], list[tuple[int, int]], str] | None:
+    """People association of one pair (ids, else the most consistent assignment) and
+    the verification of its VCs -> (verification, VCs, assignment, method), or None.
+    """
+    cache: dict[tuple[int, int], PersonMatches] = {}
+
+    def matches_of(assignment: list[tuple[int, int]]) -> tuple[IndexArray, ...]:
+        for k1, k2 in assignment:
+            if (k1, k2) not in cache:
+                cache[(k1, k2)] = match_persons(obs1[k1], obs2[k2])
+        return _concat([(k1, k2, cache[(k1, k2)]) for k1, k2 in assignment])
+
+    def verify(cat: tuple[IndexArray, ...]) -> Verification:
+        xy1 = _gather(obs1, cat[0], cat[1], "xy_img")
+        xy2 = _gather(obs2, cat[2], cat[3], "xy_img")
+        return verify_pair(
+            cam1, cam2, xy1, xy2, classic_xy1, classic_xy2, options.verification
+        )
+
+    ids1 = [o.person_id for o in obs1]
+    ids2 = [o.person_id for o in obs2]
+    if all(i >= 0 for i in ids1 + ids2):
+        assignment = [
+            (a, b)
+            for a, b in itertools.product(range(len(obs1)), range(len(obs2)))
+            if ids1[a] == ids2[b]
+        ]
+        cat = matches_of(assignment)
+        if len(cat[0]) < options.min_num_vcs:
+            return None
+        return verify(cat), cat, assignment, "id"
+    best = None
+    for candidate in _assignments(len(obs1), len(obs2)):
+        cat = matches_of(candidate)
+        if len(cat[0]) < options.min_num_vcs:
+            continue
+        result = verify(cat)
+        if best is None or result.num_inliers > best[0].num_inliers:
+            best = (result, cat, candidate, "geometric")
+    return best
+
+
 def compute_virtual_correspondences(
     views: database.DatabaseViews,
     priors: ScenePriors,
@@ -240,24 +313,52 @@ def compute_virtual_correspondences(
     classic_keypoints = classic_keypoints or {}
     classic_matches = classic_matches or {}
     name_to_idx = {n: i for i, n in enumerate(views.image_names)}
-    skipped = {n: "no priors for this image" for n in views.image_names if n not in priors.images}
-    skipped.update({n: "no person in the priors" for n, p in priors.images.items() if not p.persons})
-    names = [n for n in views.image_names if n in priors.images and priors.images[n].persons]
+    skipped = {
+        n: "no priors for this image"
+        for n in views.image_names
+        if n not in priors.images
+    }
+    skipped.update(
+        {
+            n: "no person in the priors"
+            for n, p in priors.images.items()
+            if not p.persons
+        }
+    )
+    names = [
+        n for n in views.image_names if n in priors.images and priors.images[n].persons
+    ]
 
     t0 = time.perf_counter()
     samples = _template_samples(priors, options.matching.num_samples)
     observations: dict[str, list[PersonObservations]] = {}
-    for name in tqdm(names, desc="observe", disable=not options.show_progress, leave=False):
+    for name in tqdm(
+        names, desc="observe", disable=not options.show_progress, leave=False
+    ):
         i = name_to_idx[name]
         camera = views.cameras[int(views.camera_ids[i])]
-        observations[name] = observe_image(priors, name, camera, samples, options.matching)
+        observations[name] = observe_image(
+            priors, name, camera, samples, options.matching
+        )
     timings["observe"] = time.perf_counter() - t0
 
     t0 = time.perf_counter()
     used: dict[str, list[IndexArray]] = {n: [] for n in names}
-    candidates: list[tuple[str, str, Verification, tuple[IndexArray, ...], list[tuple[int, int]], str, int]] = []
+    candidates: list[
+        tuple[
+            str,
+            str,
+            Verification,
+            tuple[IndexArray, ...],
+            list[tuple[int, int]],
+            str,
+            int,
+        ]
+    ] = []
     name_pairs = list(itertools.combinations(names, 2))
-    for n1, n2 in tqdm(name_pairs, desc="match+verify", disable=not options.show_progress, leave=False):
+    for n1, n2 in tqdm(
+        name_pairs, desc="match+verify", disable=not options.show_progress, leave=False
+    ):
         i1, i2 = name_to_idx[n1], name_to_idx[n2]
         id1, id2 = int(views.image_ids[i1]), int(views.image_ids[i2])
         if id1 > id2:
@@ -265,44 +366,18 @@ def compute_virtual_correspondences(
         obs1, obs2 = observations[n1], observations[n2]
         cam1 = views.cameras[int(views.camera_ids[i1])]
         cam2 = views.cameras[int(views.camera_ids[i2])]
-        cm = classic_matches.get((id1, id2), np.zeros((0, 2), np.int64)) if options.use_classic_matches else np.zeros((0, 2), np.int64)
+        cm = (
+            classic_matches.get((id1, id2), np.zeros((0, 2), np.int64))
+            if options.use_classic_matches
+            else np.zeros((0, 2), np.int64)
+        )
         cxy1 = classic_keypoints[id1][cm[:, 0]] if len(cm) else None
         cxy2 = classic_keypoints[id2][cm[:, 1]] if len(cm) else None
-        ids1 = [o.person_id for o in obs1]
-        ids2 = [o.person_id for o in obs2]
-        cache: dict[tuple[int, int], PersonMatches] = {}
-
-        def matches_of(assignment: list[tuple[int, int]]) -> tuple[IndexArray, ...]:
-            for k1, k2 in assignment:
-                if (k1, k2) not in cache:
-                    cache[(k1, k2)] = match_persons(obs1[k1], obs2[k2])
-            return _concat([(k1, k2, cache[(k1, k2)]) for k1, k2 in assignment])
-
-        def verify(cat: tuple[IndexArray, ...]) -> Verification:
-            xy1 = _gather(obs1, cat[0], cat[1], "xy_img")
-            xy2 = _gather(obs2, cat[2], cat[3], "xy_img")
-            return verify_pair(cam1, cam2, xy1, xy2, cxy1, cxy2, options.verification)
-
-        if all(i >= 0 for i in ids1 + ids2):
-            assignment = [(a, b) for a, b in itertools.product(range(len(obs1)), range(len(obs2))) if ids1[a] == ids2[b]]
-            method = "id"
-            cat = matches_of(assignment)
-            result = verify(cat) if len(cat[0]) >= options.min_num_vcs else None
-        else:
-            method = "geometric"
-            best = None
-            for assignment_try in _assignments(len(obs1), len(obs2)):
-                cat_try = matches_of(assignment_try)
-                if len(cat_try[0]) < options.min_num_vcs:
-                    continue
-                res = verify(cat_try)
-                if best is None or res.num_inliers > best[0].num_inliers:
-                    best = (res, cat_try, assignment_try)
-            if best is None:
-                assignment, cat, result = [], matches_of([]), None
-            else:
-                result, cat, assignment = best
-        if result is None or len(cat[0]) == 0:
+        matched = _associate_and_verify(obs1, obs2, cam1, cam2, cxy1, cxy2, options)
+        if matched is None:
+            continue
+        result, cat, assignment, method = matched
+        if len(cat[0]) == 0:
             continue
         used[n1].append(_codes(cat[0], cat[1]))
         used[n2].append(_codes(cat[2], cat[3]))
@@ -320,7 +395,10 @@ def compute_virtual_correspondences(
         codes_of[name] = codes
         obs = observations[name]
         person, row = codes >> 32, codes & 0xFFFFFFFF
-        pid_of = np.array([o.person_id if o.person_id >= 0 else k for k, o in enumerate(obs)], np.int64)
+        pid_of = np.array(
+            [o.person_id if o.person_id >= 0 else k for k, o in enumerate(obs)],
+            np.int64,
+        )
         keypoints.append(
             VcKeypoints(
                 image_id=int(views.image_ids[name_to_idx[name]]),
@@ -346,14 +424,25 @@ def compute_virtual_correspondences(
         p1 = _gather(obs1, k1, r1, "point_cam")
         x2 = _gather(obs2, k2, r2, "first_hit_cam")
         p2 = _gather(obs2, k2, r2, "point_cam")
-        pid_of = np.array([o.person_id if o.person_id >= 0 else k for k, o in enumerate(obs1)], np.int64)
+        pid_of = np.array(
+            [o.person_id if o.person_id >= 0 else k for k, o in enumerate(obs1)],
+            np.int64,
+        )
         pid = pid_of[k1]
         a, b = _thickness(x1, x2, p1, p2, result.geometry)
         pairs.append(
             PairVcMatches(
-                image_id1=id1, image_id2=id2, idx1=idx1, idx2=idx2, person_id=pid, kind=kind,
-                points1_cam=np.nan_to_num(x1, nan=0.0), points2_cam=np.nan_to_num(x2, nan=0.0),
-                a=a, b=b, is_inlier=result.vc_is_inlier,
+                image_id1=id1,
+                image_id2=id2,
+                idx1=idx1,
+                idx2=idx2,
+                person_id=pid,
+                kind=kind,
+                points1_cam=np.nan_to_num(x1, nan=0.0),
+                points2_cam=np.nan_to_num(x2, nan=0.0),
+                a=a,
+                b=b,
+                is_inlier=result.vc_is_inlier,
             )
         )
         if result.geometry is not None:
@@ -364,7 +453,8 @@ def compute_virtual_correspondences(
         for a_k, b_k in assignment:
             associations.append(
                 database.PersonAssociation(
-                    image_id1=id1, image_id2=id2,
+                    image_id1=id1,
+                    image_id2=id2,
                     person_id1=obs1[a_k].person_id if obs1[a_k].person_id >= 0 else a_k,
                     person_id2=obs2[b_k].person_id if obs2[b_k].person_id >= 0 else b_k,
                     method=database.AssociationMethod(method),
@@ -373,21 +463,33 @@ def compute_virtual_correspondences(
             )
         reports.append(
             PairReport(
-                image_name1=n1, image_name2=n2, num_vcs=len(kind), num_inliers=int(result.vc_is_inlier.sum()),
-                num_classic=num_classic, num_classic_inliers=int(result.classic_is_inlier.sum()),
+                image_name1=n1,
+                image_name2=n2,
+                num_vcs=len(kind),
+                num_inliers=int(result.vc_is_inlier.sum()),
+                num_classic=num_classic,
+                num_classic_inliers=int(result.classic_is_inlier.sum()),
                 num_by_kind={h.name.lower(): int((kind == h).sum()) for h in HitKind},
                 association=[(int(a_), int(b_)) for a_, b_ in assignment],
-                association_method=method, verified=result.geometry is not None,
+                association_method=method,
+                verified=result.geometry is not None,
             )
         )
     timings["assemble"] = time.perf_counter() - t0
     return VirtualCorrespondences(
-        keypoints=keypoints, pairs=pairs, geometries=geometries, classic_inliers=classic_inliers,
-        associations=associations, reports=reports, skipped_images=skipped,
+        keypoints=keypoints,
+        pairs=pairs,
+        geometries=geometries,
+        classic_inliers=classic_inliers,
+        associations=associations,
+        reports=reports,
+        skipped_images=skipped,
     )
 
 
-def run(database_path: Path, priors_path: Path, options: AugmentOptions | None = None) -> AugmentSummary:
+def run(
+    database_path: Path, priors_path: Path, options: AugmentOptions | None = None
+) -> AugmentSummary:
     """Augment a COLMAP database with VCs from priors (one transaction)."""
     options = options or AugmentOptions()
     database_path = Path(database_path)
@@ -398,37 +500,61 @@ def run(database_path: Path, priors_path: Path, options: AugmentOptions | None =
         name: (views.cameras[int(c)].width, views.cameras[int(c)].height)
         for name, c in zip(views.image_names, views.camera_ids, strict=True)
     }
-    priors = read_priors(Path(priors_path), known_image_names=views.image_names, image_sizes=sizes)
+    priors = read_priors(
+        Path(priors_path), known_image_names=views.image_names, image_sizes=sizes
+    )
     for name in views.image_names:
         if name not in priors.images:
             logger.warning("no priors for image %s: skipped", name)
-    with_priors = [int(i) for i, n in zip(views.image_ids, views.image_names, strict=True) if n in priors.images]
+    with_priors = [
+        int(i)
+        for i, n in zip(views.image_ids, views.image_names, strict=True)
+        if n in priors.images
+    ]
     classic_kp: dict[int, FloatArray] = {}
     classic_m: dict[Pair, IndexArray] = {}
     if options.use_classic_matches:
         classic_kp = {i: database.read_keypoints(database_path, i) for i in with_priors}
         classic_m = database.read_matches(database_path)
     timings["read"] = time.perf_counter() - t0
-    vcs = compute_virtual_correspondences(views, priors, options, classic_kp, classic_m, timings)
+    vcs = compute_virtual_correspondences(
+        views, priors, options, classic_kp, classic_m, timings
+    )
     write = None
     if not options.dry_run:
         t0 = time.perf_counter()
         write = database.write_virtual_correspondences(
-            database_path, vcs.keypoints, vcs.pairs, vcs.geometries,
-            classic_inliers=vcs.classic_inliers, persons=vcs.associations,
-            run_info={"colmap_vc_version": __version__, "priors": str(Path(priors_path).resolve()),
-                      "options": _jsonable(asdict(options))},
+            database_path,
+            vcs.keypoints,
+            vcs.pairs,
+            vcs.geometries,
+            classic_inliers=vcs.classic_inliers,
+            persons=vcs.associations,
+            run_info={
+                "colmap_vc_version": __version__,
+                "priors": str(Path(priors_path).resolve()),
+                "options": _jsonable(asdict(options)),
+            },
         )
         timings["write"] = time.perf_counter() - t0
     summary = AugmentSummary(
-        database_path=database_path, dry_run=options.dry_run, num_images=len(views.image_names),
-        num_images_with_priors=len(with_priors), skipped_images=vcs.skipped_images,
-        pairs=vcs.reports, timings_s=timings, write=write,
+        database_path=database_path,
+        dry_run=options.dry_run,
+        num_images=len(views.image_names),
+        num_images_with_priors=len(with_priors),
+        skipped_images=vcs.skipped_images,
+        pairs=vcs.reports,
+        timings_s=timings,
+        write=write,
     )
     logger.info(
         "augment%s: %d/%d images with priors, %d pairs with VCs, %d verified, %d VCs (%d inliers)",
-        " (dry run)" if options.dry_run else "", summary.num_images_with_priors, summary.num_images,
-        len(summary.pairs), summary.num_verified_pairs, sum(p.num_vcs for p in summary.pairs),
+        " (dry run)" if options.dry_run else "",
+        summary.num_images_with_priors,
+        summary.num_images,
+        len(summary.pairs),
+        summary.num_verified_pairs,
+        sum(p.num_vcs for p in summary.pairs),
         sum(p.num_inliers for p in summary.pairs),
     )
     return summary

@@ -30,13 +30,19 @@ def run_classic(
     shutil.copyfile(scene_dir / "database.db", db)
     gt = pycolmap.Reconstruction(scene_dir / "gt" / "sparse")
     rec, _ = run_incremental(
-        db, scene_dir / "images", work_dir / "classic", options or COLMAP_DEFAULTS,
+        db,
+        scene_dir / "images",
+        work_dir / "classic",
+        options or COLMAP_DEFAULTS,
         num_images=gt.num_images(),
     )
     metrics = evaluate_reconstruction(rec, gt)
     logger.info(
         "classic COLMAP: %d/%d registered, AUC@15/30/45 = %.1f / %.1f / %.1f",
-        metrics.num_registered, metrics.num_images,
-        metrics.auc["15"], metrics.auc["30"], metrics.auc["45"],
+        metrics.num_registered,
+        metrics.num_images,
+        metrics.auc["15"],
+        metrics.auc["30"],
+        metrics.auc["45"],
     )
     return rec, metrics

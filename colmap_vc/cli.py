@@ -13,7 +13,6 @@ import sys
 from collections.abc import Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Annotated
 
 import tyro
 
@@ -178,7 +177,11 @@ class Demo:
 
 def _setup_logging(verbose: bool) -> None:
     handler = logging.StreamHandler(sys.stderr)
-    handler.setFormatter(logging.Formatter("[%(asctime)s %(name)s %(levelname)s] %(message)s", "%H:%M:%S"))
+    handler.setFormatter(
+        logging.Formatter(
+            "[%(asctime)s %(name)s %(levelname)s] %(message)s", "%H:%M:%S"
+        )
+    )
     root = logging.getLogger()
     root.handlers[:] = [handler]
     root.setLevel(logging.DEBUG if verbose else logging.INFO)
@@ -224,14 +227,21 @@ def _run_synth(cmd: Synth) -> int:
             overwrite=cmd.overwrite,
         ),
     )
-    logger.info("wrote %s (%d images, %d people)", summary.out_dir, summary.num_images, summary.num_people)
+    logger.info(
+        "wrote %s (%d images, %d people)",
+        summary.out_dir,
+        summary.num_images,
+        summary.num_people,
+    )
     return 0
 
 
 def _run_eval(cmd: Eval) -> int:
     from .evaluation import evaluate_reconstruction, format_table
 
-    metrics = evaluate_reconstruction(_load_model(cmd.pred_model), _load_model(cmd.gt_model))
+    metrics = evaluate_reconstruction(
+        _load_model(cmd.pred_model), _load_model(cmd.gt_model)
+    )
     sys.stdout.write(format_table({"prediction": metrics}) + "\n")
     if cmd.output is not None:
         cmd.output.write_text(json.dumps(metrics.to_dict(), indent=1))
@@ -241,7 +251,9 @@ def _run_eval(cmd: Eval) -> int:
 
         from .report import error_curve_figure
 
-        fig = error_curve_figure({"prediction": np.array([p.error_deg for p in metrics.pairs])})
+        fig = error_curve_figure(
+            {"prediction": np.array([p.error_deg for p in metrics.pairs])}
+        )
         fig.savefig(cmd.plot, dpi=110)
         logger.info("error curve written to %s", cmd.plot)
     return 0
@@ -275,8 +287,10 @@ def _run_augment(cmd: Augment) -> int:
 
     options = cmd.options
     summary = run(cmd.database, cmd.priors, options)
-    lines = ["| image 1 | image 2 | people | VCs | inliers | ratio | co-visible | virtual | keypoint | classic inliers |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+    lines = [
+        "| image 1 | image 2 | people | VCs | inliers | ratio | co-visible | virtual | keypoint | classic inliers |",
+        "|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for p in summary.pairs:
         k = p.num_by_kind
         lines.append(
@@ -299,8 +313,12 @@ def _run_map(cmd: Map) -> int:
     from .mapping import run
 
     rec, summary = run(
-        cmd.database, cmd.image_path, cmd.output_path, cmd.options,
-        overwrite=cmd.overwrite, priors_path=cmd.priors,
+        cmd.database,
+        cmd.image_path,
+        cmd.output_path,
+        cmd.options,
+        overwrite=cmd.overwrite,
+        priors_path=cmd.priors,
     )
     sys.stdout.write(
         f"registered {summary.num_registered}/{summary.num_images} images "
@@ -320,8 +338,11 @@ def _run_report(cmd: Report) -> int:
 
     path = build_report(
         ReportInputs(
-            database_path=cmd.database, image_dir=cmd.image_path, model_path=cmd.model_path,
-            gt_model_path=cmd.gt_model_path, max_pairs=cmd.max_pairs,
+            database_path=cmd.database,
+            image_dir=cmd.image_path,
+            model_path=cmd.model_path,
+            gt_model_path=cmd.gt_model_path,
+            max_pairs=cmd.max_pairs,
         ),
         cmd.output,
     )
@@ -357,11 +378,24 @@ def _run_demo(cmd: Demo) -> int:
 
 
 COMMANDS = {
-    "synth": Synth, "priors": Priors, "augment": Augment, "map": Map, "strip": Strip, "eval": Eval, "report": Report, "demo": Demo,
+    "synth": Synth,
+    "priors": Priors,
+    "augment": Augment,
+    "map": Map,
+    "strip": Strip,
+    "eval": Eval,
+    "report": Report,
+    "demo": Demo,
 }
 RUNNERS = {
-    Synth: _run_synth, Priors: _run_priors, Augment: _run_augment, Map: _run_map, Strip: _run_strip,
-    Eval: _run_eval, Report: _run_report, Demo: _run_demo,
+    Synth: _run_synth,
+    Priors: _run_priors,
+    Augment: _run_augment,
+    Map: _run_map,
+    Strip: _run_strip,
+    Eval: _run_eval,
+    Report: _run_report,
+    Demo: _run_demo,
 }
 
 

@@ -568,7 +568,9 @@ def drop_classic_matches(db_path: str | PathLike[str]) -> int:
     path = Path(db_path)
     with _connect(path, write=True) as (conn, _), _transaction(conn, path):
         if sch.vc_table_names(conn):
-            raise ValueError(f"{path} holds colmap-vc VCs: strip it before dropping matches")
+            raise ValueError(
+                f"{path} holds colmap-vc VCs: strip it before dropping matches"
+            )
         num = conn.execute("SELECT COUNT(*) FROM matches").fetchone()[0]
         conn.execute("DELETE FROM matches")
         conn.execute("DELETE FROM two_view_geometries")

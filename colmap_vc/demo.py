@@ -22,7 +22,13 @@ import pycolmap
 
 from . import augment, mapping
 from .baselines import mesh_alignment_poses, run_classic
-from .evaluation import Metrics, evaluate_poses, evaluate_reconstruction, format_table, poses_by_name
+from .evaluation import (
+    Metrics,
+    evaluate_poses,
+    evaluate_reconstruction,
+    format_table,
+    poses_by_name,
+)
 from .priors import read_priors
 from .synthetic import SynthOptions, generate
 
@@ -52,7 +58,9 @@ def run(out_dir: Path, *, overwrite: bool = False) -> DemoSummary:
     scene_dir = out_dir / "scene"
     if out_dir.exists() and any(out_dir.iterdir()):
         if not overwrite:
-            raise FileExistsError(f"{out_dir} exists and is not empty (use --overwrite)")
+            raise FileExistsError(
+                f"{out_dir} exists and is not empty (use --overwrite)"
+            )
         shutil.rmtree(out_dir)
     logger.info("1/5 synth: the default dome scene into %s", scene_dir)
     t0 = time.perf_counter()
@@ -73,13 +81,17 @@ def run(out_dir: Path, *, overwrite: bool = False) -> DemoSummary:
     _, classic = run_classic(scene_dir, out_dir / "classic")
     timings["classic"] = time.perf_counter() - t0
     priors = read_priors(scene_dir / "priors")
-    mesh = evaluate_poses(mesh_alignment_poses(priors, poses_by_name(gt)), poses_by_name(gt))
+    mesh = evaluate_poses(
+        mesh_alignment_poses(priors, poses_by_name(gt)), poses_by_name(gt)
+    )
 
     logger.info("3/5 augment: virtual correspondences into a copy of the database")
     db = out_dir / "database.db"
     shutil.copyfile(scene_dir / "database.db", db)
     t0 = time.perf_counter()
-    aug = augment.run(db, scene_dir / "priors", augment.AugmentOptions(show_progress=False))
+    aug = augment.run(
+        db, scene_dir / "priors", augment.AugmentOptions(show_progress=False)
+    )
     timings["augment"] = time.perf_counter() - t0
 
     logger.info("4/5 map: pycolmap incremental mapping of the augmented database")
@@ -113,8 +125,11 @@ def run(out_dir: Path, *, overwrite: bool = False) -> DemoSummary:
 
     report_path = build_report(
         ReportInputs(
-            database_path=db, image_dir=scene_dir / "images", model_path=model_dir,
-            gt_model_path=scene_dir / "gt" / "sparse", timings_s=timings,
+            database_path=db,
+            image_dir=scene_dir / "images",
+            model_path=model_dir,
+            gt_model_path=scene_dir / "gt" / "sparse",
+            timings_s=timings,
             metrics=metrics,
             title="colmap-vc demo: default dome scene",
         ),

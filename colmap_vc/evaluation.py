@@ -43,7 +43,9 @@ def vector_angle_deg(a: FloatArray, b: FloatArray) -> float:
     return math.degrees(math.atan2(float(np.linalg.norm(np.cross(a, b))), float(a @ b)))
 
 
-def relative_pose(cam1_from_world: FloatArray, cam2_from_world: FloatArray) -> FloatArray:
+def relative_pose(
+    cam1_from_world: FloatArray, cam2_from_world: FloatArray
+) -> FloatArray:
     """cam2_from_cam1 (3, 4) from two (3, 4) cam_from_world poses."""
     R1, t1 = cam1_from_world[:, :3], cam1_from_world[:, 3]
     R2, t2 = cam2_from_world[:, :3], cam2_from_world[:, 3]
@@ -61,7 +63,9 @@ def relative_pose_error(
     )
 
 
-def pose_auc(errors_deg: Sequence[float] | FloatArray, thresholds_deg: Sequence[float]) -> list[float]:
+def pose_auc(
+    errors_deg: Sequence[float] | FloatArray, thresholds_deg: Sequence[float]
+) -> list[float]:
     """Area under the cumulative error curve up to each threshold, in [0, 1].
 
     Same definition as SuperGlue's ``pose_auc``: the recall curve starts at (0, 0),
@@ -166,12 +170,27 @@ def evaluate_poses(
         gt_angle = rotation_angle_deg(gt_rel[:, :3])
         if n1 in pred and n2 in pred:
             r, t = relative_pose_error(relative_pose(pred[n1], pred[n2]), gt_rel)
-            pairs.append(PairError(image_name1=n1, image_name2=n2, rotation_deg=r,
-                                   translation_deg=t, gt_angle_deg=gt_angle, registered=True))
+            pairs.append(
+                PairError(
+                    image_name1=n1,
+                    image_name2=n2,
+                    rotation_deg=r,
+                    translation_deg=t,
+                    gt_angle_deg=gt_angle,
+                    registered=True,
+                )
+            )
         else:
-            pairs.append(PairError(image_name1=n1, image_name2=n2, rotation_deg=math.nan,
-                                   translation_deg=math.nan, gt_angle_deg=gt_angle,
-                                   registered=False))
+            pairs.append(
+                PairError(
+                    image_name1=n1,
+                    image_name2=n2,
+                    rotation_deg=math.nan,
+                    translation_deg=math.nan,
+                    gt_angle_deg=gt_angle,
+                    registered=False,
+                )
+            )
     errors = np.array([p.error_deg for p in pairs])
     aucs = pose_auc(errors, thresholds_deg)
     return Metrics(
@@ -190,10 +209,14 @@ def evaluate_reconstruction(
     thresholds_deg: Sequence[float] = THRESHOLDS_DEG,
 ) -> Metrics:
     """Evaluate a COLMAP reconstruction (None: nothing registered) against GT."""
-    return evaluate_poses({} if pred is None else poses_by_name(pred), poses_by_name(gt), thresholds_deg)
+    return evaluate_poses(
+        {} if pred is None else poses_by_name(pred), poses_by_name(gt), thresholds_deg
+    )
 
 
-def format_table(rows: Mapping[str, Metrics], thresholds_deg: Sequence[float] = THRESHOLDS_DEG) -> str:
+def format_table(
+    rows: Mapping[str, Metrics], thresholds_deg: Sequence[float] = THRESHOLDS_DEG
+) -> str:
     """A Markdown table: one row per method."""
     auc_cols = [f"AUC@{t:g}" for t in thresholds_deg]
     header = ["method", "registered", *auc_cols, "median (deg)", "p80 (deg)"]

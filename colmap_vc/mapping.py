@@ -22,7 +22,7 @@ from . import database
 from .evaluation import relative_pose, rotation_angle_deg
 from .meshalign import mesh_alignment_poses
 from .priors import read_priors
-from .structs import FloatArray, ScenePriors
+from .structs import ScenePriors
 
 logger = logging.getLogger(__name__)
 
@@ -30,7 +30,9 @@ logger = logging.getLogger(__name__)
 class Mapper(enum.StrEnum):
     """Which pycolmap mapper."""
 
-    AUTO = "auto"  # incremental, checked against the mesh prior, mesh-initialised if not
+    AUTO = (
+        "auto"  # incremental, checked against the mesh prior, mesh-initialised if not
+    )
     INCREMENTAL = "incremental"
     GLOBAL = "global"
     MESH = "mesh"  # cameras from mesh alignment, then triangulation + bundle adjustment
@@ -122,7 +124,9 @@ def incremental_options(options: MappingOptions) -> pycolmap.IncrementalPipeline
     m.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
     m.abs_pose_max_error = options.abs_pose_max_error_px
     m.filter_max_reproj_error = options.filter_max_reproj_error_px
-    pipeline.triangulation.complete_max_reproj_error = options.filter_max_reproj_error_px
+    pipeline.triangulation.complete_max_reproj_error = (
+        options.filter_max_reproj_error_px
+    )
     pipeline.triangulation.merge_max_reproj_error = options.filter_max_reproj_error_px
     if not options.bundle_adjustment:
         # Initialisation only: no local BA; COLMAP insists on >= 1 global iteration.
@@ -147,7 +151,9 @@ def global_options(options: MappingOptions) -> pycolmap.GlobalPipelineOptions:
 def _ceres_ba(rec: pycolmap.Reconstruction, loss_scale_px: float) -> None:
     """COLMAP's bundle adjustment (intrinsics fixed, Cauchy loss), in place."""
     ba = pycolmap.BundleAdjustmentOptions(
-        refine_focal_length=False, refine_principal_point=False, refine_extra_params=False,
+        refine_focal_length=False,
+        refine_principal_point=False,
+        refine_extra_params=False,
         print_summary=False,
     )
     ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
@@ -176,21 +182,36 @@ def mesh_initialised(
     rec = pycolmap.Reconstruction()
     for camera in views.cameras.values():
         rec.add_camera_with_trivial_rig(camera)
-    for image_id, name, camera_id in zip(views.image_ids, views.image_names, views.camera_ids, strict=True):
+    for image_id, name, camera_id in zip(
+        views.image_ids, views.image_names, views.camera_ids, strict=True
+    ):
         if name in poses:
             T = poses[name]
             rec.add_image_with_trivial_frame(
-                pycolmap.Image(name=name, camera_id=int(camera_id), image_id=int(image_id)),
+                pycolmap.Image(
+                    name=name, camera_id=int(camera_id), image_id=int(image_id)
+                ),
                 pycolmap.Rigid3d(pycolmap.Rotation3d(T[:, :3]), T[:, 3]),
             )
     pipeline = incremental_options(options)
     # The initial poses are coarse: triangulate generously, let BA tighten.
-    pipeline.triangulation.complete_max_reproj_error = 4 * options.filter_max_reproj_error_px
-    pipeline.triangulation.merge_max_reproj_error = 4 * options.filter_max_reproj_error_px
+    pipeline.triangulation.complete_max_reproj_error = (
+        4 * options.filter_max_reproj_error_px
+    )
+    pipeline.triangulation.merge_max_reproj_error = (
+        4 * options.filter_max_reproj_error_px
+    )
     pipeline.triangulation.create_max_angle_error = 10.0
     output_dir.mkdir(parents=True, exist_ok=True)
     for _ in range(num_rounds):
-        rec = pycolmap.triangulate_points(rec, database_path, image_dir, output_dir, clear_points=True, options=pipeline)
+        rec = pycolmap.triangulate_points(
+            rec,
+            database_path,
+            image_dir,
+            output_dir,
+            clear_points=True,
+            options=pipeline,
+        )
         if rec.num_points3D() == 0:
             return None
         _ceres_ba(rec, loss_scale_px=options.filter_max_reproj_error_px / 2)
@@ -221,14 +242,19 @@ def two_view_initialised(
     (id1, id2), row = max(posed.items(), key=lambda kv: len(kv[1].inlier_matches))
     rel = row.cam2_from_cam1
     if priors is not None and options.mapper is Mapper.AUTO:
-        names = {int(i): n for i, n in zip(views.image_ids, views.image_names, strict=True)}
+        names = {
+            int(i): n for i, n in zip(views.image_ids, views.image_names, strict=True)
+        }
         mesh = mesh_alignment_poses(priors, image_names={names[id1], names[id2]})
         if len(mesh) == 2:
             mesh_rel = relative_pose(mesh[names[id1]], mesh[names[id2]])
             deviation = rotation_angle_deg(rel[:, :3] @ mesh_rel[:, :3].T)
             if deviation > options.max_prior_deviation_deg:
-                logger.info("the two-view geometry contradicts the mesh prior (%.0f deg): "
-                            "starting from the meshes' relative pose", deviation)
+                logger.info(
+                    "the two-view geometry contradicts the mesh prior (%.0f deg): "
+                    "starting from the meshes' relative pose",
+                    deviation,
+                )
                 t = mesh_rel[:, 3] / max(np.linalg.norm(mesh_rel[:, 3]), 1e-12)
                 rel = np.c_[mesh_rel[:, :3], t]
     kp1 = database.read_keypoints(database_path, int(id1), include_vc=True)
@@ -236,10 +262,18 @@ def two_view_initialised(
     rec = pycolmap.Reconstruction()
     for camera in views.cameras.values():
         rec.add_camera_with_trivial_rig(camera)
-    for image_id, pose, kp in ((id1, np.c_[np.eye(3), np.zeros(3)], kp1), (id2, rel, kp2)):
+    for image_id, pose, kp in (
+        (id1, np.c_[np.eye(3), np.zeros(3)], kp1),
+        (id2, rel, kp2),
+    ):
         i = int(np.flatnonzero(views.image_ids == image_id)[0])
         rec.add_image_with_trivial_frame(
-            pycolmap.Image(name=views.image_names[i], keypoints=kp, camera_id=int(views.camera_ids[i]), image_id=int(image_id)),
+            pycolmap.Image(
+                name=views.image_names[i],
+                keypoints=kp,
+                camera_id=int(views.camera_ids[i]),
+                image_id=int(image_id),
+            ),
             pycolmap.Rigid3d(pycolmap.Rotation3d(pose[:, :3]), pose[:, 3]),
         )
     # Midpoint triangulation of the inlier matches (vectorized), cheirality-checked.
@@ -247,7 +281,9 @@ def two_view_initialised(
     cam1 = views.cameras[int(views.camera_ids[views.image_ids == id1][0])]
     cam2 = views.cameras[int(views.camera_ids[views.image_ids == id2][0])]
     d1 = np.c_[cam1.cam_from_img(kp1[m[:, 0]]), np.ones(len(m))]
-    d2 = np.c_[cam2.cam_from_img(kp2[m[:, 1]]), np.ones(len(m))] @ rel[:, :3]  # in cam 1
+    d2 = (
+        np.c_[cam2.cam_from_img(kp2[m[:, 1]]), np.ones(len(m))] @ rel[:, :3]
+    )  # in cam 1
     c2 = -rel[:, :3].T @ rel[:, 3]
     # Closest points of the rays o1 + s d1 and c2 + u d2.
     a, b, c = (d1 * d1).sum(1), (d1 * d2).sum(1), (d2 * d2).sum(1)
@@ -274,11 +310,19 @@ def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> fl
     """Median rotation difference (deg) between a model's and the meshes' relative poses."""
     names = {im.name for im in rec.images.values() if im.has_pose}
     mesh = mesh_alignment_poses(priors, image_names=names)
-    model = {im.name: im.cam_from_world().matrix() for im in rec.images.values() if im.has_pose}
+    model = {
+        im.name: im.cam_from_world().matrix()
+        for im in rec.images.values()
+        if im.has_pose
+    }
     common = sorted(set(mesh) & set(model))
     diffs = [
-        rotation_angle_deg(relative_pose(model[a], model[b])[:, :3] @ relative_pose(mesh[a], mesh[b])[:, :3].T)
-        for i, a in enumerate(common) for b in common[i + 1 :]
+        rotation_angle_deg(
+            relative_pose(model[a], model[b])[:, :3]
+            @ relative_pose(mesh[a], mesh[b])[:, :3].T
+        )
+        for i, a in enumerate(common)
+        for b in common[i + 1 :]
     ]
     return float(np.median(diffs)) if diffs else 0.0
 
@@ -289,7 +333,11 @@ def _why_unregistered(
     """A reason per image of the database missing from the model."""
     views = database.read_views(database_path)
     geometries = database.read_two_view_geometries(database_path, include_vc=True)
-    registered = set() if best is None else {im.name for im in best.images.values() if im.has_pose}
+    registered = (
+        set()
+        if best is None
+        else {im.name for im in best.images.values() if im.has_pose}
+    )
     id_of_name = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
     reg_ids = {id_of_name[n] for n in registered if n in id_of_name}
     reasons = {}
@@ -297,7 +345,8 @@ def _why_unregistered(
         if name in registered:
             continue
         pairs = [
-            p for p, row in geometries.items()
+            p
+            for p, row in geometries.items()
             if image_id in p and len(row.inlier_matches) > 0
         ]
         with_registered = [p for p in pairs if (set(p) - {image_id}) & reg_ids]
@@ -336,14 +385,20 @@ def run(
         RuntimeError: the mapper found no model (the reason is in the message).
     """
     options = options or MappingOptions()
-    database_path, image_dir, output_dir = Path(database_path), Path(image_dir), Path(output_dir)
+    database_path, image_dir, output_dir = (
+        Path(database_path),
+        Path(image_dir),
+        Path(output_dir),
+    )
     if not database_path.is_file():
         raise FileNotFoundError(f"database not found: {database_path}")
     if not image_dir.is_dir():
         raise FileNotFoundError(f"image folder not found: {image_dir}")
     if output_dir.exists() and any(output_dir.iterdir()):
         if not overwrite:
-            raise FileExistsError(f"{output_dir} exists and is not empty (use --overwrite)")
+            raise FileExistsError(
+                f"{output_dir} exists and is not empty (use --overwrite)"
+            )
         shutil.rmtree(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     views = database.read_views(database_path)
@@ -352,12 +407,16 @@ def run(
     t0 = time.perf_counter()
     priors = _load_priors(database_path, priors_path, views.image_names)
     if num_images == 2 and options.mapper in (Mapper.AUTO, Mapper.INCREMENTAL):
-        rec = two_view_initialised(database_path, image_dir, output_dir / "0", options, priors)
+        rec = two_view_initialised(
+            database_path, image_dir, output_dir / "0", options, priors
+        )
         models = {} if rec is None else {0: rec}
     elif options.mapper is Mapper.MESH:
         if priors is None:
             raise ValueError("the mesh mapper needs the priors (--priors)")
-        rec = mesh_initialised(database_path, image_dir, output_dir / "0", priors, options)
+        rec = mesh_initialised(
+            database_path, image_dir, output_dir / "0", priors, options
+        )
         models = {} if rec is None else {0: rec}
     elif options.mapper is Mapper.GLOBAL:
         models = pycolmap.global_mapping(
@@ -375,8 +434,12 @@ def run(
                 logger.info("registered image %d/%d", registered[0] + 2, num_images)
 
         models = pycolmap.incremental_mapping(
-            database_path, image_dir, output_dir, options=incremental_options(options),
-            initial_image_pair_callback=on_init, next_image_callback=on_next,
+            database_path,
+            image_dir,
+            output_dir,
+            options=incremental_options(options),
+            initial_image_pair_callback=on_init,
+            next_image_callback=on_next,
         )
     best_key = max(models, key=lambda k: models[k].num_reg_images(), default=None)
     best = None if best_key is None else models[best_key]
@@ -385,13 +448,22 @@ def run(
         if deviation > options.max_prior_deviation_deg:
             logger.info(
                 "the incremental model contradicts the mesh prior (median %.0f deg > %.0f): "
-                "mesh-initialised mapping instead", deviation, options.max_prior_deviation_deg,
+                "mesh-initialised mapping instead",
+                deviation,
+                options.max_prior_deviation_deg,
             )
-            rec = mesh_initialised(database_path, image_dir, output_dir / "mesh", priors, options)
-            if rec is not None and (best is None or rec.num_reg_images() >= 0.8 * best.num_reg_images()):
+            rec = mesh_initialised(
+                database_path, image_dir, output_dir / "mesh", priors, options
+            )
+            if rec is not None and (
+                best is None or rec.num_reg_images() >= 0.8 * best.num_reg_images()
+            ):
                 models, best_key, best = {"mesh": rec}, "mesh", rec
         else:
-            logger.info("the incremental model agrees with the mesh prior (median %.0f deg)", deviation)
+            logger.info(
+                "the incremental model agrees with the mesh prior (median %.0f deg)",
+                deviation,
+            )
     elapsed = time.perf_counter() - t0
     reasons = _why_unregistered(database_path, best)
     if best is None:
@@ -409,7 +481,10 @@ def run(
     )
     logger.info(
         "mapping: %d model(s); the largest registers %d/%d images (%.1f s)",
-        summary.num_models, summary.num_registered, num_images, elapsed,
+        summary.num_models,
+        summary.num_registered,
+        num_images,
+        elapsed,
     )
     for name, reason in reasons.items():
         logger.info("not registered: %s: %s", name, reason)

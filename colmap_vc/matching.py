@@ -137,7 +137,9 @@ def template_key(person: PersonPrior) -> str:
     """The topology a person's mesh uses: its template name or a hash of its faces."""
     if person.template:
         return person.template
-    digest = hashlib.sha1(np.ascontiguousarray(person.faces, dtype=np.int64)).hexdigest()
+    digest = hashlib.sha1(
+        np.ascontiguousarray(person.faces, dtype=np.int64)
+    ).hexdigest()
     return f"faces:{digest[:12]}"
 
 
@@ -152,7 +154,9 @@ def sample_template(
     """
     rng = np.random.default_rng(0)
     tri = vertices[faces]
-    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    area = 0.5 * np.linalg.norm(
+        np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1
+    )
     num_candidates = 10 * num_samples
     face = rng.choice(len(faces), size=num_candidates, p=area / area.sum())
     r1, r2 = np.sqrt(rng.random(num_candidates)), rng.random(num_candidates)
@@ -160,10 +164,14 @@ def sample_template(
     points = np.einsum("nk,nkd->nd", bary, tri[face])
     chosen = np.zeros(num_samples, dtype=np.int64)
     dist = np.full(num_candidates, np.inf)
-    for i in range(1, num_samples):  # loop over samples (2000), vectorized over candidates
+    for i in range(
+        1, num_samples
+    ):  # loop over samples (2000), vectorized over candidates
         dist = np.minimum(dist, np.linalg.norm(points - points[chosen[i - 1]], axis=1))
         chosen[i] = int(np.argmax(dist))
-    return TemplateSamples(key=key, face_idx=face[chosen].astype(np.int64), bary=bary[chosen])
+    return TemplateSamples(
+        key=key, face_idx=face[chosen].astype(np.int64), bary=bary[chosen]
+    )
 
 
 def _in_image(xy: FloatArray, camera: pycolmap.Camera) -> BoolArray:
@@ -189,12 +197,22 @@ def refit_mesh_pose(
     """
     verts, faces = person.vertices_cam, person.faces
     xy_parts, xyz_parts = [], []
-    if options.use_dense_map and person.surface_map is not None and len(person.surface_map):
+    if (
+        options.use_dense_map
+        and person.surface_map is not None
+        and len(person.surface_map)
+    ):
         sm = person.surface_map
         step = max(1, len(sm) // options.refit_max_points)
         xy_parts.append(sm.xy_img[::step])
-        xyz_parts.append(raycast.surface_points(verts, faces, sm.face_idx[::step], sm.bary[::step]))
-    if options.use_keypoints and person.keypoints_xy is not None and person.keypoints_cam is not None:
+        xyz_parts.append(
+            raycast.surface_points(verts, faces, sm.face_idx[::step], sm.bary[::step])
+        )
+    if (
+        options.use_keypoints
+        and person.keypoints_xy is not None
+        and person.keypoints_cam is not None
+    ):
         valid = (
             np.ones(len(person.keypoints_xy), dtype=bool)
             if person.keypoints_valid is None
@@ -278,7 +296,11 @@ def observe_person(
     visible = hit & (np.abs(depth1 - dist_to_point) < tol_vis)
     if others is not None:
         geom_o, _, depth_o, _ = raycast.first_hits(others, origins, dirs)
-        hidden_by_other = (geom_o >= 0) & (geom_o != person_index) & (depth_o < dist_to_point - tol_vis)
+        hidden_by_other = (
+            (geom_o >= 0)
+            & (geom_o != person_index)
+            & (depth_o < dist_to_point - tol_vis)
+        )
         visible &= ~hidden_by_other
 
     # 2.-3. Dense-map correction through the body surface, with consistency filters.
@@ -290,7 +312,12 @@ def observe_person(
         keep[:] = False
         xy_k, visible, first_hit = xy_k[:0], visible[:0], first_hit[:0]
     idx = np.flatnonzero(keep)
-    if options.use_dense_map and person.surface_map is not None and len(person.surface_map) and len(idx):
+    if (
+        options.use_dense_map
+        and person.surface_map is not None
+        and len(person.surface_map)
+        and len(idx)
+    ):
         sm = person.surface_map
         map_points = raycast.surface_points(verts, faces, sm.face_idx, sm.bary)
         map_xy = np.full((len(sm), 2), np.nan)
@@ -300,10 +327,14 @@ def observe_person(
         _, f_m, _, b_m = raycast.first_hits(own, np.zeros_like(d), d)
         mesh_hit = np.full((len(sm), 3), np.nan)
         on_mesh = f_m >= 0
-        mesh_hit[on_mesh] = raycast.surface_points(verts, faces, f_m[on_mesh], b_m[on_mesh])
+        mesh_hit[on_mesh] = raycast.surface_points(
+            verts, faces, f_m[on_mesh], b_m[on_mesh]
+        )
         # Consistency: the map's surface point and the mesh's hit at the pixel agree
         # (front/back and left/right flips fail this), inside the silhouette.
-        consistent = ok & on_mesh & (np.linalg.norm(mesh_hit - map_points, axis=1) < tol_con)
+        consistent = (
+            ok & on_mesh & (np.linalg.norm(mesh_hit - map_points, axis=1) < tol_con)
+        )
         if options.use_mask and person.mask is not None:
             px = np.floor(sm.xy_img).astype(np.int64)
             consistent &= person.mask[px[:, 1], px[:, 0]]
@@ -314,28 +345,47 @@ def observe_person(
             offsets = (sm.xy_img - map_xy)[consistent]
             k = min(options.snap_neighbours, int(consistent.sum()))
             dist, nn = tree.query(
-                np.nan_to_num(first_hit, nan=1e9), k=k,
+                np.nan_to_num(first_hit, nan=1e9),
+                k=k,
                 distance_upper_bound=options.snap_tolerance_cm / 100.0,
             )
             dist, nn = dist.reshape(len(xy_k), k), nn.reshape(len(xy_k), k)
             found = np.isfinite(dist)
             num = found.sum(axis=1)
             safe_nn = np.where(found, nn, 0)
-            correction = (offsets[safe_nn] * found[..., None]).sum(axis=1) / np.maximum(num, 1)[:, None]
-            good = (num > 0) & (np.linalg.norm(correction, axis=1) <= options.max_correction_px)
+            correction = (offsets[safe_nn] * found[..., None]).sum(axis=1) / np.maximum(
+                num, 1
+            )[:, None]
+            good = (num > 0) & (
+                np.linalg.norm(correction, axis=1) <= options.max_correction_px
+            )
         xy_k = xy_k + correction
         sel = good & _in_image(xy_k, camera)
-        idx, xy_k, visible, first_hit = idx[sel], xy_k[sel], visible[sel], first_hit[sel]
+        idx, xy_k, visible, first_hit = (
+            idx[sel],
+            xy_k[sel],
+            visible[sel],
+            first_hit[sel],
+        )
     if options.use_mask and person.mask is not None and len(xy_k):
         px = np.floor(xy_k).astype(np.int64)
         sel = person.mask[px[:, 1], px[:, 0]]
-        idx, xy_k, visible, first_hit = idx[sel], xy_k[sel], visible[sel], first_hit[sel]
+        idx, xy_k, visible, first_hit = (
+            idx[sel],
+            xy_k[sel],
+            visible[sel],
+            first_hit[sel],
+        )
 
     track = idx
     point_cam = points[idx]
     is_kp = np.zeros(len(idx), dtype=bool)
     # 4. Keypoints: joint centres, whose rays meet inside the body.
-    if options.use_keypoints and person.keypoints_xy is not None and person.keypoints_cam is not None:
+    if (
+        options.use_keypoints
+        and person.keypoints_xy is not None
+        and person.keypoints_cam is not None
+    ):
         valid = (
             np.ones(len(person.keypoints_xy), dtype=bool)
             if person.keypoints_valid is None
@@ -379,7 +429,9 @@ def match_persons(obs1: PersonObservations, obs2: PersonObservations) -> PersonM
     v1, v2 = obs1.is_visible[i1], obs2.is_visible[i2]
     kp = obs1.is_keypoint[i1] & obs2.is_keypoint[i2]
     keep = kp | v1 | v2
-    kind = np.where(kp, HitKind.KEYPOINT, np.where(v1 & v2, HitKind.COVISIBLE, HitKind.VIRTUAL))
+    kind = np.where(
+        kp, HitKind.KEYPOINT, np.where(v1 & v2, HitKind.COVISIBLE, HitKind.VIRTUAL)
+    )
     return PersonMatches(
         idx1=i1[keep].astype(np.int64),
         idx2=i2[keep].astype(np.int64),

@@ -74,16 +74,26 @@ class MeshScene:
     e1: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) v1 - v0
     e2: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) v2 - v0
     normal: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) e1 x e2
-    projector: FloatArray = field(init=False, repr=False)  # (sum F_i, 2, 3) point -> (u, v)
+    projector: FloatArray = field(
+        init=False, repr=False
+    )  # (sum F_i, 2, 3) point -> (u, v)
 
     def __post_init__(self) -> None:
         tri = (
-            np.concatenate([v[f] for v, f in zip(self.vertices, self.faces, strict=True)])
+            np.concatenate(
+                [v[f] for v, f in zip(self.vertices, self.faces, strict=True)]
+            )
             if self.faces
             else np.zeros((0, 3, 3))
         )
         sizes = [len(f) for f in self.faces]
-        object.__setattr__(self, "face_offset", np.r_[0, np.cumsum(sizes)[:-1]].astype(np.int64) if sizes else np.zeros(0, np.int64))
+        object.__setattr__(
+            self,
+            "face_offset",
+            np.r_[0, np.cumsum(sizes)[:-1]].astype(np.int64)
+            if sizes
+            else np.zeros(0, np.int64),
+        )
         object.__setattr__(self, "v0", np.ascontiguousarray(tri[:, 0]))
         object.__setattr__(self, "e1", tri[:, 1] - tri[:, 0])
         object.__setattr__(self, "e2", tri[:, 2] - tri[:, 0])
@@ -196,15 +206,21 @@ def _cast_once(
             t_hit = np.einsum("ij,ij->i", n, rel) / np.einsum("ij,ij->i", n, dirs[hit])
             t[hit] = t_hit
             # Exact float64 barycentrics of the float64 hit point in its face.
-            uv = np.einsum("nkd,nd->nk", scene.projector[row], t_hit[:, None] * dirs[hit] - rel)
-            bary[hit] = np.stack([1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1)
+            uv = np.einsum(
+                "nkd,nd->nk", scene.projector[row], t_hit[:, None] * dirs[hit] - rel
+            )
+            bary[hit] = np.stack(
+                [1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1
+            )
         return geom, face, t, bary
     geom, face = _cast_brute_force(scene, origins, dirs)
     t = np.full(len(origins), np.inf)
     bary = np.zeros((len(origins), 3))
     hit = face >= 0
     if hit.any():
-        t[hit], bary[hit] = _refine_hits(scene, origins[hit], dirs[hit], geom[hit], face[hit])
+        t[hit], bary[hit] = _refine_hits(
+            scene, origins[hit], dirs[hit], geom[hit], face[hit]
+        )
     return geom, face, t, bary
 
 
@@ -212,7 +228,9 @@ def _cast_brute_force(
     scene: MeshScene, origins: FloatArray, dirs: FloatArray, chunk: int = 4_000_000
 ) -> tuple[IndexArray, IndexArray]:
     """Exact first hits without Embree: Moller-Trumbore of ray chunks x all faces."""
-    tri = np.concatenate([v[f] for v, f in zip(scene.vertices, scene.faces, strict=True)])
+    tri = np.concatenate(
+        [v[f] for v, f in zip(scene.vertices, scene.faces, strict=True)]
+    )
     geom_of = np.concatenate(
         [np.full(len(f), g) for g, f in enumerate(scene.faces)]
     ).astype(np.int64)

@@ -70,13 +70,23 @@ def refine_model(
     t0 = time.perf_counter()
     keypoints, pairs = database.read_virtual_correspondences(database_path)
     if not pairs:
-        logger.info("GBA: %s has no virtual correspondences: nothing to refine", database_path)
-        return RefineSummary(reconstruction=rec, result=None, output_dir=None, elapsed_s=0.0)
+        logger.info(
+            "GBA: %s has no virtual correspondences: nothing to refine", database_path
+        )
+        return RefineSummary(
+            reconstruction=rec, result=None, output_dir=None, elapsed_s=0.0
+        )
     views = database.read_views(database_path)
-    num_classic = dict(zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True))
+    num_classic = dict(
+        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
+    )
     cap = _vc_budget(rec, pairs, num_classic, vc_to_classic_variance)
     refined, result = refine_reconstruction(
-        rec, keypoints, pairs, options, image_id_to_num_classic=num_classic,
+        rec,
+        keypoints,
+        pairs,
+        options,
+        image_id_to_num_classic=num_classic,
         max_vcs_per_pair=cap,
     )
     if output_dir is not None:
@@ -88,6 +98,12 @@ def refine_model(
     s = result.summary
     logger.info(
         "GBA: cost %.4g -> %.4g in %d iterations (%.1f s); model written to %s",
-        s.initial_cost, s.final_cost, s.num_iterations, elapsed, output_dir,
+        s.initial_cost,
+        s.final_cost,
+        s.num_iterations,
+        elapsed,
+        output_dir,
     )
-    return RefineSummary(reconstruction=refined, result=result, output_dir=output_dir, elapsed_s=elapsed)
+    return RefineSummary(
+        reconstruction=refined, result=result, output_dir=output_dir, elapsed_s=elapsed
+    )

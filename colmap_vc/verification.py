@@ -101,12 +101,17 @@ def verify_pair(
     )
     config = int(tvg.config)
     inliers = np.asarray(tvg.inlier_matches, dtype=np.int64).reshape(-1, 2)[:, 0]
-    if config not in (
-        int(pycolmap.TwoViewGeometryConfiguration.CALIBRATED),
-        int(pycolmap.TwoViewGeometryConfiguration.PLANAR),
-        int(pycolmap.TwoViewGeometryConfiguration.PLANAR_OR_PANORAMIC),
-        int(pycolmap.TwoViewGeometryConfiguration.PANORAMIC),
-    ) or len(inliers) < options.min_num_inliers or tvg.cam2_from_cam1 is None:
+    if (
+        config
+        not in (
+            int(pycolmap.TwoViewGeometryConfiguration.CALIBRATED),
+            int(pycolmap.TwoViewGeometryConfiguration.PLANAR),
+            int(pycolmap.TwoViewGeometryConfiguration.PLANAR_OR_PANORAMIC),
+            int(pycolmap.TwoViewGeometryConfiguration.PANORAMIC),
+        )
+        or len(inliers) < options.min_num_inliers
+        or tvg.cam2_from_cam1 is None
+    ):
         # (a planar or panoramic configuration can come without a relative pose)
         return none
     is_inlier = np.zeros(m + c, dtype=bool)

@@ -33,18 +33,47 @@ def contact_sheet(
         h = round(image.shape[0] * tile_width / image.shape[1])
         tile = cv2.resize(image, (tile_width, h), interpolation=cv2.INTER_AREA)
         label = labels[i] if labels is not None else Path(path).name
-        cv2.putText(tile, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (0, 0, 0), 3, cv2.LINE_AA)
-        cv2.putText(tile, label, (6, 18), cv2.FONT_HERSHEY_SIMPLEX, 0.5, (255, 255, 255), 1, cv2.LINE_AA)
+        cv2.putText(
+            tile,
+            label,
+            (6, 18),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5,
+            (0, 0, 0),
+            3,
+            cv2.LINE_AA,
+        )
+        cv2.putText(
+            tile,
+            label,
+            (6, 18),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.5,
+            (255, 255, 255),
+            1,
+            cv2.LINE_AA,
+        )
         tiles.append(tile)
     h = max(t.shape[0] for t in tiles)
     rows = math.ceil(len(tiles) / columns)
     sheet = np.full((rows * h, columns * tile_width, 3), 255, np.uint8)
     for i, tile in enumerate(tiles):
         r, c = divmod(i, columns)
-        sheet[r * h : r * h + tile.shape[0], c * tile_width : (c + 1) * tile_width] = tile
+        sheet[r * h : r * h + tile.shape[0], c * tile_width : (c + 1) * tile_width] = (
+            tile
+        )
     if title:
         bar = np.full((32, sheet.shape[1], 3), 255, np.uint8)
-        cv2.putText(bar, title, (8, 22), cv2.FONT_HERSHEY_SIMPLEX, 0.6, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.putText(
+            bar,
+            title,
+            (8, 22),
+            cv2.FONT_HERSHEY_SIMPLEX,
+            0.6,
+            (0, 0, 0),
+            1,
+            cv2.LINE_AA,
+        )
         sheet = np.concatenate([bar, sheet])
     out_path.parent.mkdir(parents=True, exist_ok=True)
     cv2.imwrite(str(out_path), sheet)

@@ -19,6 +19,11 @@ def dome_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
     from colmap_vc.synthetic import SynthOptions, generate
 
     out = tmp_path_factory.mktemp("dome") / "scene"
-    generate("dome", out, SynthOptions(seed=7, num_cameras=6, num_people=2, noise="realistic",
-                                       num_threads=2))
+    generate(
+        "dome",
+        out,
+        SynthOptions(
+            seed=7, num_cameras=6, num_people=2, noise="realistic", num_threads=2
+        ),
+    )
     return out

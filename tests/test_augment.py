@@ -36,26 +36,43 @@ def test_clean_vcs_meet_under_the_ground_truth_poses(dome_scene, clean_vcs):
     views, vcs = clean_vcs
     gt = _gt_poses(dome_scene)
     name_of = dict(zip(views.image_ids.tolist(), views.image_names, strict=True))
-    cam_of = {int(i): views.cameras[int(c)] for i, c in zip(views.image_ids, views.camera_ids, strict=True)}
+    cam_of = {
+        int(i): views.cameras[int(c)]
+        for i, c in zip(views.image_ids, views.camera_ids, strict=True)
+    }
     kp = {k.image_id: k for k in vcs.keypoints}
     kinds = np.zeros(3, int)
     for pair in vcs.pairs:
         rel = relative_pose(gt[name_of[pair.image_id1]], gt[name_of[pair.image_id2]])
         xy1 = kp[pair.image_id1].xy_img[pair.idx1]
         xy2 = kp[pair.image_id2].xy_img[pair.idx2]
-        err = epipolar_errors_px(cam_of[pair.image_id1], cam_of[pair.image_id2], rel, xy1, xy2)
-        assert err.max() < 0.01, f"pair {pair.image_id1}-{pair.image_id2}: {err.max():.4f} px"
+        err = epipolar_errors_px(
+            cam_of[pair.image_id1], cam_of[pair.image_id2], rel, xy1, xy2
+        )
+        assert err.max() < 0.01, (
+            f"pair {pair.image_id1}-{pair.image_id2}: {err.max():.4f} px"
+        )
         kinds += np.bincount(pair.kind, minlength=3)
         # No duplicate VC within a pair.
         assert len(np.unique(pair.idx1 * 100_000 + pair.idx2)) == len(pair)
-    assert kinds[HitKind.COVISIBLE] > 100 and kinds[HitKind.VIRTUAL] > 100 and kinds[HitKind.KEYPOINT] > 10
+    assert (
+        kinds[HitKind.COVISIBLE] > 100
+        and kinds[HitKind.VIRTUAL] > 100
+        and kinds[HitKind.KEYPOINT] > 10
+    )
 
 
 def test_every_pair_sharing_a_person_is_verified(dome_scene, clean_vcs):
     views, vcs = clean_vcs
     gt = _gt_poses(dome_scene)
     seen = {
-        name: set(np.unique(np.load(dome_scene / "gt" / "surface" / (Path(name).stem + ".npz"))["person_id"]).tolist())
+        name: set(
+            np.unique(
+                np.load(dome_scene / "gt" / "surface" / (Path(name).stem + ".npz"))[
+                    "person_id"
+                ]
+            ).tolist()
+        )
         for name in views.image_names
     }
     id_of = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
@@ -83,10 +100,17 @@ def test_tracks_span_several_images(clean_vcs):
 def test_geometric_person_association_recovers_identities(dome_scene):
     views = database.read_views(dome_scene / "database.db")
     priors = read_priors(dome_scene / "gt" / "priors")
-    anonymous = ScenePriors(images={
-        n: ImagePrior(image_name=n, persons=tuple(dataclasses.replace(p, person_id=None) for p in ip.persons))
-        for n, ip in priors.images.items()
-    })
+    anonymous = ScenePriors(
+        images={
+            n: ImagePrior(
+                image_name=n,
+                persons=tuple(
+                    dataclasses.replace(p, person_id=None) for p in ip.persons
+                ),
+            )
+            for n, ip in priors.images.items()
+        }
+    )
     opts = augment.AugmentOptions(use_classic_matches=False, show_progress=False)
     vcs = augment.compute_virtual_correspondences(views, anonymous, opts)
     true_ids = {n: [p.person_id for p in ip.persons] for n, ip in priors.images.items()}
@@ -108,7 +132,9 @@ def test_augment_strip_round_trip_and_dry_run(dome_scene, tmp_path):
     shutil.copyfile(dome_scene / "database.db", db)
     before = _checksums(db)
     opts = augment.AugmentOptions(show_progress=False)
-    dry = augment.run(db, dome_scene / "priors", dataclasses.replace(opts, dry_run=True))
+    dry = augment.run(
+        db, dome_scene / "priors", dataclasses.replace(opts, dry_run=True)
+    )
     assert dry.write is None and _checksums(db) == before and dry.pairs
     first = augment.run(db, dome_scene / "priors", opts)
     assert first.write is not None and first.num_verified_pairs > 0
@@ -118,8 +144,10 @@ def test_augment_strip_round_trip_and_dry_run(dome_scene, tmp_path):
     # Classic keypoints are a byte-identical prefix; classic matches rows survive.
     views = database.read_views(db)
     for image_id in views.image_ids:
-        assert np.array_equal(database.read_keypoints(db, int(image_id)),
-                              database.read_keypoints(dome_scene / "database.db", int(image_id)))
+        assert np.array_equal(
+            database.read_keypoints(db, int(image_id)),
+            database.read_keypoints(dome_scene / "database.db", int(image_id)),
+        )
     augment.run(db, dome_scene / "priors", opts)
     assert _checksums(db) == once  # augment twice == augment once
     database.strip(db)
@@ -129,11 +157,16 @@ def test_augment_strip_round_trip_and_dry_run(dome_scene, tmp_path):
 def test_augmented_database_maps_with_pycolmap(dome_scene, tmp_path):
     db = tmp_path / "database.db"
     shutil.copyfile(dome_scene / "database.db", db)
-    augment.run(db, dome_scene / "gt" / "priors", augment.AugmentOptions(show_progress=False))
-    opts = pycolmap.IncrementalPipelineOptions(num_threads=2, ba_refine_focal_length=False,
-                                               ba_refine_extra_params=False)
+    augment.run(
+        db, dome_scene / "gt" / "priors", augment.AugmentOptions(show_progress=False)
+    )
+    opts = pycolmap.IncrementalPipelineOptions(
+        num_threads=2, ba_refine_focal_length=False, ba_refine_extra_params=False
+    )
     pycolmap.set_random_seed(0)
-    models = pycolmap.incremental_mapping(db, dome_scene / "images", tmp_path / "sparse", opts)
+    models = pycolmap.incremental_mapping(
+        db, dome_scene / "images", tmp_path / "sparse", opts
+    )
     assert max(m.num_reg_images() for m in models.values()) == 6
 
 
@@ -143,10 +176,23 @@ def test_priors_for_unknown_images_fail_and_leave_the_database(dome_scene, tmp_p
     before = _checksums(db)
     priors = read_priors(dome_scene / "priors")
     name = sorted(priors.images)[0]
-    bad = ScenePriors(images={**priors.images, "ghost.jpg": dataclasses.replace(priors.images[name], image_name="ghost.jpg")})
-    write_priors(bad, tmp_path / "priors", templates={"anny": next(iter(priors.images.values())).persons[0].faces})
+    bad = ScenePriors(
+        images={
+            **priors.images,
+            "ghost.jpg": dataclasses.replace(
+                priors.images[name], image_name="ghost.jpg"
+            ),
+        }
+    )
+    write_priors(
+        bad,
+        tmp_path / "priors",
+        templates={"anny": next(iter(priors.images.values())).persons[0].faces},
+    )
     with pytest.raises(PriorsError, match="ghost.jpg"):
-        augment.run(db, tmp_path / "priors", augment.AugmentOptions(show_progress=False))
+        augment.run(
+            db, tmp_path / "priors", augment.AugmentOptions(show_progress=False)
+        )
     assert _checksums(db) == before
 
 
@@ -155,9 +201,17 @@ def test_images_without_priors_are_skipped_with_a_reason(dome_scene, tmp_path, c
     shutil.copyfile(dome_scene / "database.db", db)
     priors = read_priors(dome_scene / "priors")
     dropped = sorted(priors.images)[0]
-    partial = ScenePriors(images={n: p for n, p in priors.images.items() if n != dropped})
-    write_priors(partial, tmp_path / "priors", templates={"anny": priors.images[dropped].persons[0].faces})
-    summary = augment.run(db, tmp_path / "priors", augment.AugmentOptions(show_progress=False))
+    partial = ScenePriors(
+        images={n: p for n, p in priors.images.items() if n != dropped}
+    )
+    write_priors(
+        partial,
+        tmp_path / "priors",
+        templates={"anny": priors.images[dropped].persons[0].faces},
+    )
+    summary = augment.run(
+        db, tmp_path / "priors", augment.AugmentOptions(show_progress=False)
+    )
     assert dropped in summary.skipped_images
     assert dropped in caplog.text
     assert all(dropped not in (p.image_name1, p.image_name2) for p in summary.pairs)

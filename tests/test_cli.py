@@ -25,19 +25,66 @@ def test_usage_error_exits_2():
 def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
     db = tmp_path / "database.db"
     shutil.copyfile(dome_scene / "database.db", db)
-    assert main(["augment", str(db), "--priors", str(dome_scene / "gt" / "priors"), "--no-show-progress"]) == 0
+    assert (
+        main(
+            [
+                "augment",
+                str(db),
+                "--priors",
+                str(dome_scene / "gt" / "priors"),
+                "--no-show-progress",
+            ]
+        )
+        == 0
+    )
     out = capsys.readouterr().out
     assert "pairs verified" in out and "cam00.jpg" in out
-    assert main(["map", str(db), "--image-path", str(dome_scene / "images"),
-                 "--output-path", str(tmp_path / "sparse"), "--no-gba"]) == 0
+    assert (
+        main(
+            [
+                "map",
+                str(db),
+                "--image-path",
+                str(dome_scene / "images"),
+                "--output-path",
+                str(tmp_path / "sparse"),
+                "--no-gba",
+            ]
+        )
+        == 0
+    )
     assert "registered 6/6" in capsys.readouterr().out
     # the output exists: a second run without --overwrite fails (exit 1), nothing lost
-    assert main(["map", str(db), "--image-path", str(dome_scene / "images"),
-                 "--output-path", str(tmp_path / "sparse"), "--no-gba"]) == 1
+    assert (
+        main(
+            [
+                "map",
+                str(db),
+                "--image-path",
+                str(dome_scene / "images"),
+                "--output-path",
+                str(tmp_path / "sparse"),
+                "--no-gba",
+            ]
+        )
+        == 1
+    )
     metrics = tmp_path / "m.json"
     plot = tmp_path / "curve.png"
-    assert main(["eval", str(tmp_path / "sparse"), str(dome_scene / "gt" / "sparse"),
-                 "--output", str(metrics), "--plot", str(plot)]) == 0
+    assert (
+        main(
+            [
+                "eval",
+                str(tmp_path / "sparse"),
+                str(dome_scene / "gt" / "sparse"),
+                "--output",
+                str(metrics),
+                "--plot",
+                str(plot),
+            ]
+        )
+        == 0
+    )
     assert json.loads(metrics.read_text())["num_registered"] == 6
     import cv2
 
@@ -48,4 +95,6 @@ def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
 
 def test_runtime_errors_exit_1(tmp_path):
     assert main(["eval", str(tmp_path / "nope"), str(tmp_path / "nope2")]) == 1
-    assert main(["augment", str(tmp_path / "missing.db"), "--priors", str(tmp_path)]) == 1
+    assert (
+        main(["augment", str(tmp_path / "missing.db"), "--priors", str(tmp_path)]) == 1
+    )

@@ -39,7 +39,10 @@ def test_errors_vanish_under_a_similarity_transform():
     # world' = s R0 world + t0  =>  cam_from_world' = [R R0^T | s t - R R0^T t0]
     R0 = Rotation.random(random_state=3).as_matrix()
     t0, s = rng.normal(size=3), 2.5
-    pred = {k: np.c_[P[:, :3] @ R0.T, s * P[:, 3] - P[:, :3] @ R0.T @ t0] for k, P in gt.items()}
+    pred = {
+        k: np.c_[P[:, :3] @ R0.T, s * P[:, 3] - P[:, :3] @ R0.T @ t0]
+        for k, P in gt.items()
+    }
     m = ev.evaluate_poses(pred, gt)
     assert m.num_registered == 5 and len(m.pairs) == 10
     assert max(p.error_deg for p in m.pairs) < 1e-6
@@ -47,7 +50,11 @@ def test_errors_vanish_under_a_similarity_transform():
 
 
 def test_known_rotation_error_and_unregistered_pairs():
-    gt = {"a": np.c_[np.eye(3), [0, 0, 0]], "b": np.c_[np.eye(3), [1.0, 0, 0]], "c": np.c_[np.eye(3), [0, 1.0, 0]]}
+    gt = {
+        "a": np.c_[np.eye(3), [0, 0, 0]],
+        "b": np.c_[np.eye(3), [1.0, 0, 0]],
+        "c": np.c_[np.eye(3), [0, 1.0, 0]],
+    }
     R = Rotation.from_euler("y", 20, degrees=True).as_matrix()
     pred = {"a": gt["a"], "b": np.c_[R, [1.0, 0, 0]]}  # c unregistered
     m = ev.evaluate_poses(pred, gt)

@@ -16,15 +16,25 @@ from colmap_vc.evaluation import evaluate_reconstruction
 def augmented(dome_scene, tmp_path_factory):
     db = tmp_path_factory.mktemp("map") / "database.db"
     shutil.copyfile(dome_scene / "database.db", db)
-    augment.run(db, dome_scene / "gt" / "priors", augment.AugmentOptions(show_progress=False))
+    augment.run(
+        db, dome_scene / "gt" / "priors", augment.AugmentOptions(show_progress=False)
+    )
     return db
 
 
-def test_augmented_dome_registers_every_image_accurately(dome_scene, augmented, tmp_path):
-    rec, summary = mapping.run(augmented, dome_scene / "images", tmp_path / "sparse",
-                               mapping.MappingOptions(num_threads=2))
+def test_augmented_dome_registers_every_image_accurately(
+    dome_scene, augmented, tmp_path
+):
+    rec, summary = mapping.run(
+        augmented,
+        dome_scene / "images",
+        tmp_path / "sparse",
+        mapping.MappingOptions(num_threads=2),
+    )
     assert summary.num_registered == 6 and not summary.unregistered
-    metrics = evaluate_reconstruction(rec, pycolmap.Reconstruction(dome_scene / "gt" / "sparse"))
+    metrics = evaluate_reconstruction(
+        rec, pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    )
     assert metrics.auc["15"] > 90  # clean priors
     assert (summary.model_dir / "images.bin").exists()
 

@@ -13,20 +13,32 @@ def sphere_and_box():
     sphere = trimesh.creation.icosphere(subdivisions=3, radius=1.0)
     box = trimesh.creation.box(extents=[0.5, 0.5, 0.5])
     box.apply_translation([0.3, -0.2, 2.0])
-    return [(np.asarray(sphere.vertices), np.asarray(sphere.faces)),
-            (np.asarray(box.vertices), np.asarray(box.faces))]
+    return [
+        (np.asarray(sphere.vertices), np.asarray(sphere.faces)),
+        (np.asarray(box.vertices), np.asarray(box.faces)),
+    ]
 
 
 CAMERAS = [
     pycolmap.Camera(model="PINHOLE", width=160, height=120, params=[150, 150, 80, 60]),
-    pycolmap.Camera(model="OPENCV", width=160, height=120,
-                    params=[150, 151, 81, 59, -0.1, 0.02, 1e-3, -1e-3]),
+    pycolmap.Camera(
+        model="OPENCV",
+        width=160,
+        height=120,
+        params=[150, 151, 81, 59, -0.1, 0.02, 1e-3, -1e-3],
+    ),
 ]
 
 
 def _pose() -> np.ndarray:
     angle = 0.3
-    R = np.array([[np.cos(angle), 0, np.sin(angle)], [0, 1, 0], [-np.sin(angle), 0, np.cos(angle)]])
+    R = np.array(
+        [
+            [np.cos(angle), 0, np.sin(angle)],
+            [0, 1, 0],
+            [-np.sin(angle), 0, np.cos(angle)],
+        ]
+    )
     centre = np.array([-1.2, 0.1, -4.0])
     return np.c_[R, -R @ centre]
 
@@ -97,5 +109,8 @@ def test_embree_and_brute_force_agree(sphere_and_box):
 
 def test_bad_shapes_raise():
     with pytest.raises(ValueError, match="origins"):
-        raycast.first_hits(raycast.build_scene([(np.eye(3), np.array([[0, 1, 2]]))]),
-                           np.zeros((2, 2)), np.zeros((2, 3)))
+        raycast.first_hits(
+            raycast.build_scene([(np.eye(3), np.array([[0, 1, 2]]))]),
+            np.zeros((2, 2)),
+            np.zeros((2, 3)),
+        )

@@ -15,7 +15,12 @@ from colmap_vc import raycast
 from colmap_vc.evaluation import rotation_angle_deg
 from colmap_vc.priors import read_priors
 from colmap_vc.synthetic import SynthOptions, generate
-from colmap_vc.synthetic.layout import LayoutOptions, Preset, make_layout, pair_angle_deg
+from colmap_vc.synthetic.layout import (
+    LayoutOptions,
+    Preset,
+    make_layout,
+    pair_angle_deg,
+)
 
 
 def _gt(scene: Path) -> pycolmap.Reconstruction:
@@ -29,7 +34,9 @@ def test_gt_model_loads_and_matches_the_scene_spec(dome_scene):
     by_name = {im.name: im for im in rec.images.values()}
     for cam in spec["cameras"]:
         image = by_name[cam["name"]]
-        np.testing.assert_allclose(image.cam_from_world().matrix(), cam["cam_from_world"], atol=1e-12)
+        np.testing.assert_allclose(
+            image.cam_from_world().matrix(), cam["cam_from_world"], atol=1e-12
+        )
         np.testing.assert_allclose(image.camera.params, cam["params"])
         assert (dome_scene / "images" / cam["name"]).is_file()
     # The text model says the same as the binary one.
@@ -48,8 +55,12 @@ def test_gt_surface_maps_reproject_to_their_surface_points(dome_scene):
         for pid in np.unique(data["person_id"]):
             sel = data["person_id"] == pid
             person = by_id[int(pid)]
-            points = raycast.surface_points(person.vertices_cam, person.faces,
-                                            data["face"][sel].astype(np.int64), data["bary"][sel].astype(np.float64))
+            points = raycast.surface_points(
+                person.vertices_cam,
+                person.faces,
+                data["face"][sel].astype(np.int64),
+                data["bary"][sel].astype(np.float64),
+            )
             xy = image.camera.img_from_cam(points)
             err = np.linalg.norm(xy - data["xy"][sel], axis=1)
             assert err.max() < 0.5, f"{image.name} person {pid}: {err.max():.3f} px"
@@ -95,7 +106,9 @@ def test_predicted_priors_follow_the_noise_model(dome_scene):
             xy = cams[name].img_from_cam(p.keypoints_cam)
             true_xy = cams[name].img_from_cam(t.keypoints_cam)
             joint_px.append(np.median(np.linalg.norm(xy - true_xy, axis=1)))
-            assert p.surface_map is not None and 0 < len(p.surface_map) < 1.05 * len(t.surface_map)
+            assert p.surface_map is not None and 0 < len(p.surface_map) < 1.05 * len(
+                t.surface_map
+            )
             assert 0.7 <= p.confidence <= 0.95
     assert 3.0 < np.median(rotations) < 20.0
     assert np.median(joint_px) < 15.0
@@ -116,8 +129,12 @@ def test_database_has_the_true_intrinsics_and_features(dome_scene):
     rec = _gt(dome_scene)
     by_name = {im.name: im for im in rec.images.values()}
     assert set(views.image_names) == set(by_name)
-    for name, cam_id, n in zip(views.image_names, views.camera_ids, views.num_keypoints, strict=True):
-        np.testing.assert_allclose(views.cameras[int(cam_id)].params, by_name[name].camera.params)
+    for name, cam_id, n in zip(
+        views.image_names, views.camera_ids, views.num_keypoints, strict=True
+    ):
+        np.testing.assert_allclose(
+            views.cameras[int(cam_id)].params, by_name[name].camera.params
+        )
         assert views.cameras[int(cam_id)].model == by_name[name].camera.model
         assert 50 < n <= 2048 * 2  # SIFT cap (COLMAP may add a second orientation)
     assert len(database.read_matches(dome_scene / "database.db")) > 0
@@ -145,18 +162,26 @@ def test_existing_output_is_not_overwritten(tmp_path):
     out.mkdir()
     (out / "keep.txt").write_text("mine")
     with pytest.raises(FileExistsError, match="overwrite"):
-        generate("dome", out, SynthOptions(num_cameras=2, width=80, height=60, make_database=False))
+        generate(
+            "dome",
+            out,
+            SynthOptions(num_cameras=2, width=80, height=60, make_database=False),
+        )
     assert (out / "keep.txt").read_text() == "mine"
 
 
 def _angles(layout) -> list[float]:
-    return [pair_angle_deg(a, b, np.array([0.0, 0.0, 1.0]))
-            for a, b in itertools.combinations(layout.cameras, 2)]
+    return [
+        pair_angle_deg(a, b, np.array([0.0, 0.0, 1.0]))
+        for a, b in itertools.combinations(layout.cameras, 2)
+    ]
 
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_dome_layout_is_all_around(seed):
-    layout = make_layout(Preset.DOME, np.random.default_rng(seed), num_phenotypes=6, num_poses=8)
+    layout = make_layout(
+        Preset.DOME, np.random.default_rng(seed), num_phenotypes=6, num_poses=8
+    )
     assert 8 <= len(layout.cameras) <= 16
     angles = np.array(_angles(layout))
     assert (angles >= 90).mean() > 0.25 and angles.max() > 120
@@ -168,16 +193,25 @@ def test_dome_layout_is_all_around(seed):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_dense_layout_overlaps(seed):
-    layout = make_layout(Preset.DENSE, np.random.default_rng(seed), num_phenotypes=6, num_poses=8)
-    steps = [pair_angle_deg(a, b, np.array([0.0, 0.0, 1.0]))
-             for a, b in zip(layout.cameras[:-1], layout.cameras[1:], strict=True)]
-    assert 3 <= min(steps) and max(steps) <= 25
+    layout = make_layout(
+        Preset.DENSE, np.random.default_rng(seed), num_phenotypes=6, num_poses=8
+    )
+    steps = [
+        pair_angle_deg(a, b, np.array([0.0, 0.0, 1.0]))
+        for a, b in zip(layout.cameras[:-1], layout.cameras[1:], strict=True)
+    ]
+    assert min(steps) >= 3 and max(steps) <= 25
 
 
 @pytest.mark.parametrize("angle", [0.0, 60.0, 150.0])
 def test_pair_layout_has_the_requested_angle(angle):
-    layout = make_layout(Preset.PAIR, np.random.default_rng(0), num_phenotypes=6, num_poses=8,
-                         options=LayoutOptions(pair_angle_deg=angle))
+    layout = make_layout(
+        Preset.PAIR,
+        np.random.default_rng(0),
+        num_phenotypes=6,
+        num_poses=8,
+        options=LayoutOptions(pair_angle_deg=angle),
+    )
     assert len(layout.cameras) == 2
     target = np.r_[layout.people[0].position_xy, 1.0]
     assert pair_angle_deg(*layout.cameras, target) == pytest.approx(angle, abs=1e-6)
@@ -186,8 +220,20 @@ def test_pair_layout_has_the_requested_angle(angle):
 def test_bad_options_are_rejected():
     rng = np.random.default_rng(0)
     with pytest.raises(ValueError, match="num_people"):
-        make_layout(Preset.DOME, rng, num_phenotypes=6, num_poses=8, options=LayoutOptions(num_people=4))
+        make_layout(
+            Preset.DOME,
+            rng,
+            num_phenotypes=6,
+            num_poses=8,
+            options=LayoutOptions(num_people=4),
+        )
     with pytest.raises(ValueError, match="camera_model"):
-        make_layout(Preset.DOME, rng, num_phenotypes=6, num_poses=8, options=LayoutOptions(camera_model="FISHEYE_X"))
+        make_layout(
+            Preset.DOME,
+            rng,
+            num_phenotypes=6,
+            num_poses=8,
+            options=LayoutOptions(camera_model="FISHEYE_X"),
+        )
     with pytest.raises(ValueError):
         Preset("cathedral")

@@ -99,13 +99,21 @@ def gt_reconstruction(layout: SceneLayout) -> pycolmap.Reconstruction:
         rec.add_camera_with_trivial_rig(_camera(spec, i))
         image = pycolmap.Image(name=spec.name, camera_id=i, image_id=i)
         rec.add_image_with_trivial_frame(
-            image, pycolmap.Rigid3d(pycolmap.Rotation3d(spec.cam_from_world[:, :3]), spec.cam_from_world[:, 3])
+            image,
+            pycolmap.Rigid3d(
+                pycolmap.Rotation3d(spec.cam_from_world[:, :3]),
+                spec.cam_from_world[:, 3],
+            ),
         )
     return rec
 
 
 def _person_views(
-    view: RenderedView, layout: SceneLayout, posed: list[np.ndarray], spec: CameraSpec, world
+    view: RenderedView,
+    layout: SceneLayout,
+    posed: list[np.ndarray],
+    spec: CameraSpec,
+    world,
 ) -> list[PersonView]:
     """Ground truth of every person visible in a rendered view."""
     out = []
@@ -119,7 +127,10 @@ def _person_views(
         world_from_body = np.concatenate([R_bw.T, (-R_bw.T @ t_bw)[:, None]], axis=1)
         C = spec.cam_from_world
         cam_from_body = np.concatenate(
-            [C[:, :3] @ world_from_body[:, :3], (C[:, :3] @ world_from_body[:, 3] + C[:, 3])[:, None]],
+            [
+                C[:, :3] @ world_from_body[:, :3],
+                (C[:, :3] @ world_from_body[:, 3] + C[:, 3])[:, None],
+            ],
             axis=1,
         )
         out.append(
@@ -143,20 +154,29 @@ def _write_surface_map(
 ) -> int:
     """gt/surface/<image>.npz: every person pixel with its surface point."""
     if not views:
-        np.savez_compressed(path, xy=np.zeros((0, 2), np.float32), person_id=np.zeros(0, np.int16),
-                            face=np.zeros(0, np.int32), bary=np.zeros((0, 3), np.float32),
-                            template_idx=np.zeros(0, np.int32))
+        np.savez_compressed(
+            path,
+            xy=np.zeros((0, 2), np.float32),
+            person_id=np.zeros(0, np.int16),
+            face=np.zeros(0, np.int32),
+            bary=np.zeros((0, 3), np.float32),
+            template_idx=np.zeros(0, np.int32),
+        )
         return 0
     template_idx = []
     for v in views:
         rest = bodies.rest_vertices[v.phenotype]
-        samples = body_lib.surface_points(bodies, rest, bodies.template_face_idx, bodies.template_bary)
+        samples = body_lib.surface_points(
+            bodies, rest, bodies.template_face_idx, bodies.template_bary
+        )
         points = body_lib.surface_points(bodies, rest, v.face_idx, v.bary)
         template_idx.append(cKDTree(samples).query(points)[1])
     np.savez_compressed(
         path,
         xy=np.concatenate([v.xy_img for v in views]).astype(np.float32),
-        person_id=np.concatenate([np.full(len(v.xy_img), v.person_id) for v in views]).astype(np.int16),
+        person_id=np.concatenate(
+            [np.full(len(v.xy_img), v.person_id) for v in views]
+        ).astype(np.int16),
         face=np.concatenate([v.face_idx for v in views]).astype(np.int32),
         bary=np.concatenate([v.bary for v in views]).astype(np.float32),
         template_idx=np.concatenate(template_idx).astype(np.int32),
@@ -164,16 +184,15 @@ def _write_surface_map(
     return sum(len(v.xy_img) for v in views)
 
 
-def build_database(
-    out_dir: Path, layout: SceneLayout, options: SynthOptions
-) -> Path:
+def build_database(out_dir: Path, layout: SceneLayout, options: SynthOptions) -> Path:
     """SIFT extraction with the known intrinsics, then exhaustive matching."""
     db_path = out_dir / "database.db"
     extraction = pycolmap.FeatureExtractionOptions(num_threads=options.num_threads)
     extraction.sift.max_num_features = options.max_num_features
     for spec in sorted(layout.cameras, key=lambda c: c.name):
         reader = pycolmap.ImageReaderOptions(
-            camera_model=spec.model, camera_params=",".join(f"{p:.17g}" for p in spec.params)
+            camera_model=spec.model,
+            camera_params=",".join(f"{p:.17g}" for p in spec.params),
         )
         pycolmap.extract_features(
             db_path,
@@ -185,18 +204,24 @@ def build_database(
             device=pycolmap.Device.cpu,
         )
     matching = pycolmap.FeatureMatchingOptions(num_threads=options.num_threads)
-    pycolmap.match_exhaustive(db_path, matching_options=matching, device=pycolmap.Device.cpu)
+    pycolmap.match_exhaustive(
+        db_path, matching_options=matching, device=pycolmap.Device.cpu
+    )
     return db_path
 
 
-def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None = None) -> SynthSummary:
+def generate(
+    preset: Preset | str, out_dir: Path, options: SynthOptions | None = None
+) -> SynthSummary:
     """Generate one synthetic scene into ``out_dir`` (see the module docstring)."""
     options = options or SynthOptions()
     preset = Preset(preset)
     out_dir = Path(out_dir)
     if out_dir.exists() and any(out_dir.iterdir()):
         if not options.overwrite:
-            raise FileExistsError(f"{out_dir} exists and is not empty (use --overwrite)")
+            raise FileExistsError(
+                f"{out_dir} exists and is not empty (use --overwrite)"
+            )
         shutil.rmtree(out_dir)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
@@ -225,9 +250,13 @@ def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None =
     gt_priors: dict[str, ImagePrior] = {}
     pred_priors: dict[str, ImagePrior] = {}
     extra = [NoiseLevel(level) for level in options.extra_noise]
-    extra_priors: dict[NoiseLevel, dict[str, ImagePrior]] = {level: {} for level in extra}
+    extra_priors: dict[NoiseLevel, dict[str, ImagePrior]] = {
+        level: {} for level in extra
+    }
     extra_rng = {
-        level: np.random.default_rng([options.seed, 1000 + list(NoiseLevel).index(level)])
+        level: np.random.default_rng(
+            [options.seed, 1000 + list(NoiseLevel).index(level)]
+        )
         for level in extra
     }
     person_pixels: dict[str, int] = {}
@@ -236,28 +265,40 @@ def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None =
         t1 = time.perf_counter()
         view = render_view(world, spec, rng)
         # OpenCV writes BGR; the renderer produces RGB.
-        cv2.imwrite(str(out_dir / "images" / spec.name), view.image[:, :, ::-1],
-                    [cv2.IMWRITE_JPEG_QUALITY, 95])
+        cv2.imwrite(
+            str(out_dir / "images" / spec.name),
+            view.image[:, :, ::-1],
+            [cv2.IMWRITE_JPEG_QUALITY, 95],
+        )
         t2 = time.perf_counter()
         camera = _camera(spec, 1)
         views = _person_views(view, layout, posed, spec, world)
         stem = Path(spec.name).stem
-        person_pixels[spec.name] = _write_surface_map(out_dir / "gt/surface" / f"{stem}.npz", views, bodies)
+        person_pixels[spec.name] = _write_surface_map(
+            out_dir / "gt/surface" / f"{stem}.npz", views, bodies
+        )
         # Detector order is not identity order: shuffle the people per image.
         order = rng.permutation(len(views))
         gt_priors[spec.name] = ImagePrior(
             image_name=spec.name,
-            persons=tuple(predict_person(bodies, views[i], camera, NoiseLevel.CLEAN, rng) for i in order),
+            persons=tuple(
+                predict_person(bodies, views[i], camera, NoiseLevel.CLEAN, rng)
+                for i in order
+            ),
         )
         pred_priors[spec.name] = ImagePrior(
             image_name=spec.name,
-            persons=tuple(predict_person(bodies, views[i], camera, options.noise, rng) for i in order),
+            persons=tuple(
+                predict_person(bodies, views[i], camera, options.noise, rng)
+                for i in order
+            ),
         )
         for level in extra:
             extra_priors[level][spec.name] = ImagePrior(
                 image_name=spec.name,
                 persons=tuple(
-                    predict_person(bodies, views[i], camera, level, extra_rng[level]) for i in order
+                    predict_person(bodies, views[i], camera, level, extra_rng[level])
+                    for i in order
                 ),
             )
         t_render += t2 - t1
@@ -268,11 +309,25 @@ def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None =
     t1 = time.perf_counter()
     sizes = {c.name: (c.width, c.height) for c in layout.cameras}
     templates = {"anny": bodies.faces}
-    write_priors(ScenePriors(images=gt_priors), out_dir / "gt/priors", templates=templates, image_sizes=sizes)
-    write_priors(ScenePriors(images=pred_priors), out_dir / "priors", templates=templates, image_sizes=sizes)
+    write_priors(
+        ScenePriors(images=gt_priors),
+        out_dir / "gt/priors",
+        templates=templates,
+        image_sizes=sizes,
+    )
+    write_priors(
+        ScenePriors(images=pred_priors),
+        out_dir / "priors",
+        templates=templates,
+        image_sizes=sizes,
+    )
     for level, images in extra_priors.items():
-        write_priors(ScenePriors(images=images), out_dir / f"priors_{level.value}",
-                     templates=templates, image_sizes=sizes)
+        write_priors(
+            ScenePriors(images=images),
+            out_dir / f"priors_{level.value}",
+            templates=templates,
+            image_sizes=sizes,
+        )
     rec = gt_reconstruction(layout)
     rec.write_binary(str(out_dir / "gt/sparse"))
     rec.write_text(str(out_dir / "gt/sparse"))
@@ -287,7 +342,10 @@ def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None =
     spec_json = {
         "colmap_vc_version": __version__,
         "preset": preset.value,
-        "options": {k: (v.value if hasattr(v, "value") else v) for k, v in asdict(options).items()},
+        "options": {
+            k: (v.value if hasattr(v, "value") else v)
+            for k, v in asdict(options).items()
+        },
         "noise_model": asdict(NOISE_LEVELS[NoiseLevel(options.noise)]),
         "backdrop": layout.backdrop.value,
         "people": [
@@ -301,8 +359,12 @@ def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None =
             for p in layout.people
         ],
         "cameras": [
-            {"name": c.name, "model": c.model, "params": c.params.tolist(),
-             "cam_from_world": c.cam_from_world.tolist()}
+            {
+                "name": c.name,
+                "model": c.model,
+                "params": c.params.tolist(),
+                "cam_from_world": c.cam_from_world.tolist(),
+            }
             for c in layout.cameras
         ],
     }
@@ -317,7 +379,12 @@ def generate(preset: Preset | str, out_dir: Path, options: SynthOptions | None =
     )
     logger.info(
         "synth %s: %d images, %d people, %.1f s (render %.1f s, priors %.1f s, database %.1f s)",
-        preset.value, summary.num_images, summary.num_people, timings["total"],
-        timings["render"], timings["priors"], timings.get("database", 0.0),
+        preset.value,
+        summary.num_images,
+        summary.num_people,
+        timings["total"],
+        timings["render"],
+        timings["priors"],
+        timings.get("database", 0.0),
     )
     return summary

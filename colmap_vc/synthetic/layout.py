@@ -99,7 +99,9 @@ DEFAULT_CAMERA_MODEL = {
 }
 
 
-def look_at(centre: FloatArray, target: FloatArray, roll_rad: float = 0.0) -> FloatArray:
+def look_at(
+    centre: FloatArray, target: FloatArray, roll_rad: float = 0.0
+) -> FloatArray:
     """cam_from_world (3, 4) of a camera at ``centre`` looking at ``target``, Z up."""
     forward = target - centre
     forward = forward / np.linalg.norm(forward)
@@ -204,7 +206,9 @@ def make_layout(
         base = rng.uniform(0, 2 * math.pi)
         steps = np.deg2rad(rng.uniform(5, 20, num_cameras - 1))
         azimuth = base + np.r_[0.0, np.cumsum(steps)]
-        elevation = np.deg2rad(np.clip(15 + np.cumsum(rng.normal(0, 3, num_cameras)), 5, 35))
+        elevation = np.deg2rad(
+            np.clip(15 + np.cumsum(rng.normal(0, 3, num_cameras)), 5, 35)
+        )
         radius = np.clip(3.5 + np.cumsum(rng.normal(0, 0.1, num_cameras)), 3.0, 4.5)
         backdrop = Backdrop.ROOM
     else:
@@ -226,7 +230,9 @@ def make_layout(
         s1, s2 = np.sin(elevation)
         cos_dazi = (math.cos(math.radians(angle)) - s1 * s2) / (c1 * c2)
         base = rng.uniform(0, 2 * math.pi)
-        azimuth = np.array([base, base + math.acos(float(np.clip(cos_dazi, -1.0, 1.0)))])
+        azimuth = np.array(
+            [base, base + math.acos(float(np.clip(cos_dazi, -1.0, 1.0)))]
+        )
         # At 0 degrees the cameras still differ in distance, so there is a baseline.
         radius = np.array([rng.uniform(3.0, 3.5), rng.uniform(4.0, 4.5)])
         backdrop = Backdrop.ROOM

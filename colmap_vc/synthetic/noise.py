@@ -162,7 +162,9 @@ def _refit_translation(points_cam: FloatArray, target_norm: FloatArray) -> Float
     A = np.zeros((2 * k, 3))
     A[:k, 0], A[:k, 2] = 1.0, -u
     A[k:, 1], A[k:, 2] = 1.0, -v
-    rhs = np.r_[u * points_cam[:, 2] - points_cam[:, 0], v * points_cam[:, 2] - points_cam[:, 1]]
+    rhs = np.r_[
+        u * points_cam[:, 2] - points_cam[:, 0], v * points_cam[:, 2] - points_cam[:, 1]
+    ]
     return np.linalg.lstsq(A, rhs, rcond=None)[0]
 
 
@@ -182,17 +184,26 @@ def _predict_mesh(
 
     num_phenotypes = bodies.rest_vertices.shape[0]
     if model.shape_blend[1] > 0 and num_phenotypes > 1:
-        other = int(rng.choice([p for p in range(num_phenotypes) if p != view.phenotype]))
-        blend: tuple[int, float] | None = (other, float(rng.uniform(*model.shape_blend)))
+        other = int(
+            rng.choice([p for p in range(num_phenotypes) if p != view.phenotype])
+        )
+        blend: tuple[int, float] | None = (
+            other,
+            float(rng.uniform(*model.shape_blend)),
+        )
     else:
         blend = None
     delta = None
     if model.joint_sigma_deg > 0:
         # Per-bone scale: the spine and neck chains share one joint's worth of error,
         # helper bones and the root (the global orientation) get none.
-        delta = rng.normal(0, math.radians(model.joint_sigma_deg), bodies.pose_rotvec.shape[1:])
+        delta = rng.normal(
+            0, math.radians(model.joint_sigma_deg), bodies.pose_rotvec.shape[1:]
+        )
         delta *= bodies.bone_sigma_scale[:, None]
-    body = pose_body(bodies, view.phenotype, view.pose, delta_rotvec=delta, shape_blend=blend)
+    body = pose_body(
+        bodies, view.phenotype, view.pose, delta_rotvec=delta, shape_blend=blend
+    )
     # Scale error: the predicted body's height is off by e, and so is its depth.
     e = rng.uniform(*model.scale_error) * rng.choice([-1.0, 1.0])
     height_true = np.ptp(view.body_vertices[:, 2])
@@ -235,8 +246,12 @@ def _predict_surface_map(
         # Read the true map at a smoothly displaced pixel: correlated sliding.
         dx = model.map_slide_px * _smooth_field(rng, (h, w), 12.0)
         dy = model.map_slide_px * _smooth_field(rng, (h, w), 12.0)
-        sx = np.clip(np.round(px[:, 0] + dx[px[:, 1], px[:, 0]]), 0, w - 1).astype(np.int64)
-        sy = np.clip(np.round(px[:, 1] + dy[px[:, 1], px[:, 0]]), 0, h - 1).astype(np.int64)
+        sx = np.clip(np.round(px[:, 0] + dx[px[:, 1], px[:, 0]]), 0, w - 1).astype(
+            np.int64
+        )
+        sy = np.clip(np.round(px[:, 1] + dy[px[:, 1], px[:, 0]]), 0, h - 1).astype(
+            np.int64
+        )
         face = face_img[sy, sx]
         bary = bary_img[sy, sx]
         keep &= face >= 0
@@ -260,9 +275,13 @@ def _predict_surface_map(
         for limb in ("arm", "leg"):
             if rng.random() < model.lr_flip_prob:
                 limb_parts = np.flatnonzero(
-                    np.char.find(names.astype(str), limb) >= 0
-                    | (np.isin(names, ["hand_left", "hand_right"]) if limb == "arm"
-                       else np.isin(names, ["foot_left", "foot_right"]))
+                    np.char.find(names.astype(str), limb)
+                    >= 0
+                    | (
+                        np.isin(names, ["hand_left", "hand_right"])
+                        if limb == "arm"
+                        else np.isin(names, ["foot_left", "foot_right"])
+                    )
                 )
                 sel = keep & np.isin(bodies.face_part[face], limb_parts)
                 face[sel], bary[sel] = mirror_surface(bodies, face[sel], bary[sel])
@@ -272,7 +291,9 @@ def _predict_surface_map(
     return SurfaceMap(xy_img=xy[keep], face_idx=face[keep], bary=bary[keep])
 
 
-def _predict_mask(view: PersonView, model: NoiseModel, rng: np.random.Generator) -> BoolArray:
+def _predict_mask(
+    view: PersonView, model: NoiseModel, rng: np.random.Generator
+) -> BoolArray:
     if model.mask_jitter_px <= 0:
         return view.mask.copy()
     r = int(rng.integers(1, model.mask_jitter_px + 1))
@@ -294,13 +315,21 @@ def _keypoints(
 
     true_cam = joints(bodies, _transform(view.cam_from_body, view.body_vertices))
     xy = camera.img_from_cam(true_cam, check_cheirality=False)
-    xy = xy + rng.normal(0, model.keypoint_sigma_px, xy.shape) if model.keypoint_sigma_px else xy
+    xy = (
+        xy + rng.normal(0, model.keypoint_sigma_px, xy.shape)
+        if model.keypoint_sigma_px
+        else xy
+    )
     pred_cam = joints(bodies, pred_vertices)
     if rng.random() < model.keypoint_swap_prob:
         names = list(bodies.joint_names)
         swap = np.array(
             [
-                names.index(n.replace("left", "#").replace("right", "left").replace("#", "right"))
+                names.index(
+                    n.replace("left", "#")
+                    .replace("right", "left")
+                    .replace("#", "right")
+                )
                 if ("left" in n or "right" in n)
                 else i
                 for i, n in enumerate(names)

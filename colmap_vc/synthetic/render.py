@@ -110,7 +110,9 @@ def build_world(
         world_from_body = place_person(person.position_xy, person.yaw_rad)
         v_world = verts @ world_from_body[:, :3].T + world_from_body[:, 3]
         R = world_from_body[:, :3]
-        body_from_world = np.concatenate([R.T, (-R.T @ world_from_body[:, 3])[:, None]], axis=1)
+        body_from_world = np.concatenate(
+            [R.T, (-R.T @ world_from_body[:, 3])[:, None]], axis=1
+        )
         people.append(
             PersonMesh(
                 person_id=person.person_id,
@@ -151,18 +153,26 @@ def _shade(
         f = world.scene.faces[g][face[sel]]
         nrm = np.einsum("nk,nkd->nd", bary[sel], world.normals[g][f])
         normal[sel] = nrm / np.linalg.norm(nrm, axis=1, keepdims=True)
-        if g == FLOOR or g == WALLS:
+        if g in (FLOOR, WALLS):
             if world.backdrop is Backdrop.ROOM:
                 albedo[sel] = texture.room_surface(world.seed, points[sel], normal[sel])
             elif g == FLOOR:
                 albedo[sel] = texture.dome_floor(world.seed, points[sel])
             else:
-                albedo[sel] = texture.dome_surface(world.seed, points[sel], bary[sel], face[sel])
+                albedo[sel] = texture.dome_surface(
+                    world.seed, points[sel], bary[sel], face[sel]
+                )
         else:
             person = world.people[g - FIRST_PERSON]
-            rest = raycast.surface_points(person.rest_vertices, person.faces, face[sel], bary[sel])
+            rest = raycast.surface_points(
+                person.rest_vertices, person.faces, face[sel], bary[sel]
+            )
             albedo[sel] = texture.clothing(
-                world.seed, person.outfit, rest, world.part_names, world.face_part[face[sel]]
+                world.seed,
+                person.outfit,
+                rest,
+                world.part_names,
+                world.face_part[face[sel]],
             )
     # Two-sided lighting: flip normals that face away from the viewer.
     facing = np.einsum("nd,nd->n", normal, dirs) > 0
@@ -172,7 +182,7 @@ def _shade(
     on_floor = np.flatnonzero(geom == FLOOR)
     if len(on_floor) and world.people:
         o = points[on_floor] + 1e-4 * LIGHT_DIR
-        g2, f2, _, _ = raycast.first_hits(
+        g2, _, _, _ = raycast.first_hits(
             world.scene, o, np.broadcast_to(LIGHT_DIR, o.shape).copy()
         )
         lambert[on_floor[g2 >= FIRST_PERSON]] *= 0.25
@@ -185,7 +195,10 @@ def render_view(
 ) -> RenderedView:
     """Render one camera's image and its per-pixel surface record."""
     cam = pycolmap.Camera(
-        model=camera.model, width=camera.width, height=camera.height, params=camera.params
+        model=camera.model,
+        width=camera.width,
+        height=camera.height,
+        params=camera.params,
     )
     xy = raycast.pixel_grid(camera.width, camera.height)
     origins, dirs = raycast.rays_world(cam, camera.cam_from_world, xy)

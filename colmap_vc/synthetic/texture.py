@@ -29,7 +29,9 @@ class TextureSeed:
         return cls(np.concatenate([p, p]), rng.random(256))
 
 
-def _hash(seed: TextureSeed, ix: IndexArray, iy: IndexArray, iz: IndexArray) -> FloatArray:
+def _hash(
+    seed: TextureSeed, ix: IndexArray, iy: IndexArray, iz: IndexArray
+) -> FloatArray:
     p = seed.perm
     return seed.values[p[p[p[ix & 255] + (iy & 255)] + (iz & 255)]]
 
@@ -47,7 +49,9 @@ def value_noise(seed: TextureSeed, points: FloatArray) -> FloatArray:
             wy = w[:, 1] if dy else 1.0 - w[:, 1]
             for dz in (0, 1):
                 wz = w[:, 2] if dz else 1.0 - w[:, 2]
-                out += wx * wy * wz * _hash(seed, i[:, 0] + dx, i[:, 1] + dy, i[:, 2] + dz)
+                out += (
+                    wx * wy * wz * _hash(seed, i[:, 0] + dx, i[:, 1] + dy, i[:, 2] + dz)
+                )
     return out
 
 
@@ -120,7 +124,9 @@ _ROOM_COLOURS = np.array(
 )
 
 
-def room_surface(seed: TextureSeed, points: FloatArray, normals: FloatArray) -> FloatArray:
+def room_surface(
+    seed: TextureSeed, points: FloatArray, normals: FloatArray
+) -> FloatArray:
     """A richly textured room: wood-like floor, walls with posters of blobs. (N, 3) RGB."""
     n = np.abs(normals)
     is_floor = n[:, 2] > 0.5
@@ -175,7 +181,12 @@ class Outfit:
     def from_rng(cls, rng: np.random.Generator) -> Outfit:
         """A random but plausible outfit."""
         skins = np.array(
-            [[0.93, 0.76, 0.64], [0.80, 0.60, 0.45], [0.55, 0.38, 0.26], [0.36, 0.24, 0.16]]
+            [
+                [0.93, 0.76, 0.64],
+                [0.80, 0.60, 0.45],
+                [0.55, 0.38, 0.26],
+                [0.36, 0.24, 0.16],
+            ]
         )
         return cls(
             skin=skins[rng.integers(len(skins))],
@@ -209,9 +220,9 @@ def clothing(
         mix = (np.sin(2 * np.pi * outfit.pattern_freq * z) > 0).astype(float)
     elif outfit.pattern == 1:
         f = outfit.pattern_freq
-        mix = ((np.sin(2 * np.pi * f * z) > 0) ^ (np.sin(2 * np.pi * f * x) > 0)).astype(
-            float
-        )
+        mix = (
+            (np.sin(2 * np.pi * f * z) > 0) ^ (np.sin(2 * np.pi * f * x) > 0)
+        ).astype(float)
     else:
         inside, _ = disk_field(seed, template_points[:, [0, 2]] * 3 + 5.0, cell_m=0.35)
         mix = inside

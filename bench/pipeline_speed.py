@@ -1,0 +1,80 @@
+"""Wall time of `augment` + `map` (+ GBA) on a 16-view, 3-person dome scene.
+
+Goal (issue 4): augment + map at most 20 s on 2 cores. GBA is timed separately.
+
+    .venv/bin/python bench/pipeline_speed.py [--repeats 2]
+
+Writes bench/out/pipeline_speed.json and a section of docs/benchmark.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import shutil
+import time
+
+from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
+
+from colmap_vc import augment, mapping
+from colmap_vc.refine import refine_model
+from colmap_vc.synthetic import SynthOptions, generate
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--repeats", type=int, default=2)
+    args = parser.parse_args()
+    setup_logging()
+    scene = OUT / "scenes" / "speed_dome16"
+    if not (scene / "database.db").exists():
+        generate(
+            "dome",
+            scene,
+            SynthOptions(seed=100, num_cameras=16, num_people=3, overwrite=True),
+        )
+    runs = []
+    for _ in range(args.repeats):
+        work = OUT / "runs" / "pipeline_speed"
+        shutil.rmtree(work, ignore_errors=True)
+        work.mkdir(parents=True)
+        db = work / "database.db"
+        shutil.copyfile(scene / "database.db", db)
+        t0 = time.perf_counter()
+        augment.run(db, scene / "priors", augment.AugmentOptions(show_progress=False))
+        t1 = time.perf_counter()
+        rec, summary = mapping.run(
+            db,
+            scene / "images",
+            work / "sparse",
+            mapping.MappingOptions(show_progress=False),
+        )
+        t2 = time.perf_counter()
+        refine_model(db, rec, work / "refined")
+        t3 = time.perf_counter()
+        runs.append(
+            {
+                "augment_s": t1 - t0,
+                "map_s": t2 - t1,
+                "gba_s": t3 - t2,
+                "augment_map_s": t2 - t0,
+                "registered": summary.num_registered,
+            }
+        )
+    best = min(runs, key=lambda r: r["augment_map_s"])
+    write_json("pipeline_speed.json", {"machine": machine(), "runs": runs})
+    body = (
+        f"16-view, 3-person dome: augment {best['augment_s']:.1f} s + map {best['map_s']:.1f} s = "
+        f"**{best['augment_map_s']:.1f} s** (goal <= 20 s), {best['registered']}/16 registered; "
+        f"GBA afterwards {best['gba_s']:.1f} s. Best of {args.repeats} at commit {machine()['commit']}, "
+        "`.venv/bin/python bench/pipeline_speed.py`."
+    )
+    replace_section(
+        DOCS / "benchmark.md",
+        "pipeline-speed",
+        "## augment + map speed (`bench/pipeline_speed.py`)\n\n" + body,
+    )
+    print(body)
+
+
+if __name__ == "__main__":
+    main()
