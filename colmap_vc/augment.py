@@ -59,6 +59,10 @@ class AugmentOptions:
     """Verify jointly with the pair's classic matches where there are any."""
     min_num_vcs: int = 15
     """Pairs with fewer candidate VCs are skipped."""
+    max_classic_inliers: int = 100
+    """Pairs whose classic two-view geometry already has this many inliers get no
+    VCs: SIFT is far more precise than any human prior where views overlap (0: add
+    VCs to every pair)."""
     dry_run: bool = False
     """Compute and report, write nothing."""
     show_progress: bool = True
@@ -297,6 +301,7 @@ def compute_virtual_correspondences(
     classic_keypoints: Mapping[int, FloatArray] | None = None,
     classic_matches: Mapping[Pair, IndexArray] | None = None,
     timings: dict[str, float] | None = None,
+    solved_pairs: set[Pair] | None = None,
 ) -> VirtualCorrespondences:
     """Find, associate and verify VCs for every pair of images with priors.
 
@@ -307,6 +312,7 @@ def compute_virtual_correspondences(
         classic_keypoints: classic keypoints (N, 2) by image id, for joint verification.
         classic_matches: raw classic matches (M, 2) by pair (id1 < id2).
         timings: filled with seconds per stage when given.
+        solved_pairs: pairs (id1 < id2) classic matching already solved: no VCs.
     """
     options = options or AugmentOptions()
     timings = timings if timings is not None else {}
@@ -363,6 +369,8 @@ def compute_virtual_correspondences(
         id1, id2 = int(views.image_ids[i1]), int(views.image_ids[i2])
         if id1 > id2:
             n1, n2, i1, i2, id1, id2 = n2, n1, i2, i1, id2, id1
+        if solved_pairs and (id1, id2) in solved_pairs:
+            continue
         obs1, obs2 = observations[n1], observations[n2]
         cam1 = views.cameras[int(views.camera_ids[i1])]
         cam2 = views.cameras[int(views.camera_ids[i2])]
@@ -516,9 +524,18 @@ def run(
     if options.use_classic_matches:
         classic_kp = {i: database.read_keypoints(database_path, i) for i in with_priors}
         classic_m = database.read_matches(database_path)
+    solved: set[Pair] = set()
+    if options.max_classic_inliers > 0:
+        solved = {
+            p
+            for p, row in database.read_two_view_geometries(database_path).items()
+            if len(row.inlier_matches) >= options.max_classic_inliers
+        }
+        if solved:
+            logger.info("%d pair(s) already solved by classic matching: no VCs there", len(solved))
     timings["read"] = time.perf_counter() - t0
     vcs = compute_virtual_correspondences(
-        views, priors, options, classic_kp, classic_m, timings
+        views, priors, options, classic_kp, classic_m, timings, solved_pairs=solved
     )
     write = None
     if not options.dry_run:

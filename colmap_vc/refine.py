@@ -56,6 +56,7 @@ def refine_model(
     output_dir: Path | None,
     options: GbaOptions | None = None,
     vc_to_classic_variance: float = 36.0,
+    max_classic_inliers: int = 100,
 ) -> RefineSummary:
     """GBA of ``rec`` with the database's VCs; writes the refined model to output_dir.
 
@@ -65,7 +66,9 @@ def refine_model(
     fraction of a pixel for SIFT (variance ratio ``vc_to_classic_variance``, about
     (3 px / 0.5 px)^2). The solver weighs all residuals alike, so the VC tuples of
     each pair are thinned by that ratio instead (an even subsample), which keeps
-    classic matches from being drowned out on overlapping views.
+    classic matches from being drowned out on overlapping views. Pairs that already
+    have ``max_classic_inliers`` classic inliers or more (overlapping views, where
+    SIFT is far more precise than any human prior) contribute no VC tuples at all.
     """
     t0 = time.perf_counter()
     keypoints, pairs = database.read_virtual_correspondences(database_path)
@@ -76,6 +79,12 @@ def refine_model(
         return RefineSummary(
             reconstruction=rec, result=None, output_dir=None, elapsed_s=0.0
         )
+    classic = database.read_two_view_geometries(database_path, include_vc=False)
+    strong = {p for p, row in classic.items() if len(row.inlier_matches) >= max_classic_inliers}
+    pairs = [p for p in pairs if (p.image_id1, p.image_id2) not in strong]
+    if not pairs:
+        logger.info("GBA: every VC pair has strong classic geometry: plain BA is enough")
+        return RefineSummary(reconstruction=rec, result=None, output_dir=None, elapsed_s=0.0)
     views = database.read_views(database_path)
     num_classic = dict(
         zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
