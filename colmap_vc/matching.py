@@ -65,7 +65,7 @@ class MatchingOptions:
     keypoints against their mesh points) by PnP (pycolmap LO-RANSAC + refinement)."""
     refit_max_error_px: float = 6.0
     """RANSAC threshold of that PnP, pixels."""
-    refit_max_points: int = 4000
+    refit_max_points: int = 1000
     """Map pixels used by the PnP at most (an even subsample)."""
     snap_tolerance_cm: float = 6.0
     """A sample's front surface point is found in the dense map when a consistent

@@ -26,7 +26,7 @@ class VerificationOptions:
     """RANSAC inlier threshold (COLMAP's epipolar error), pixels."""
     min_num_inliers: int = 15
     """Fewer inliers: the pair gets no two-view geometry."""
-    confidence: float = 0.9999
+    confidence: float = 0.999
     """RANSAC confidence."""
     max_num_trials: int = 10000
     """RANSAC iterations at most."""
