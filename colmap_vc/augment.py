@@ -532,7 +532,10 @@ def run(
             if len(row.inlier_matches) >= options.max_classic_inliers
         }
         if solved:
-            logger.info("%d pair(s) already solved by classic matching: no VCs there", len(solved))
+            logger.info(
+                "%d pair(s) already solved by classic matching: no VCs there",
+                len(solved),
+            )
     timings["read"] = time.perf_counter() - t0
     vcs = compute_virtual_correspondences(
         views, priors, options, classic_kp, classic_m, timings, solved_pairs=solved

@@ -44,7 +44,6 @@ from .structs import (
     ImagePrior,
     IndexArray,
     PersonPrior,
-    _check_shape,
 )
 
 logger = logging.getLogger(__name__)
@@ -438,11 +437,3 @@ def match_persons(obs1: PersonObservations, obs2: PersonObservations) -> PersonM
         kind=kind[keep].astype(np.int64),
         track_id=tracks[keep].astype(np.int64),
     )
-
-
-def check_observations(obs: PersonObservations) -> None:
-    """Shape checks of a PersonObservations (public boundary helper)."""
-    t = len(obs.track_id)
-    _check_shape("xy_img", obs.xy_img, (t, 2))
-    _check_shape("point_cam", obs.point_cam, (t, 3))
-    _check_shape("first_hit_cam", obs.first_hit_cam, (t, 3))

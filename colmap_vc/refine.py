@@ -80,11 +80,19 @@ def refine_model(
             reconstruction=rec, result=None, output_dir=None, elapsed_s=0.0
         )
     classic = database.read_two_view_geometries(database_path, include_vc=False)
-    strong = {p for p, row in classic.items() if len(row.inlier_matches) >= max_classic_inliers}
+    strong = {
+        p
+        for p, row in classic.items()
+        if len(row.inlier_matches) >= max_classic_inliers
+    }
     pairs = [p for p in pairs if (p.image_id1, p.image_id2) not in strong]
     if not pairs:
-        logger.info("GBA: every VC pair has strong classic geometry: plain BA is enough")
-        return RefineSummary(reconstruction=rec, result=None, output_dir=None, elapsed_s=0.0)
+        logger.info(
+            "GBA: every VC pair has strong classic geometry: plain BA is enough"
+        )
+        return RefineSummary(
+            reconstruction=rec, result=None, output_dir=None, elapsed_s=0.0
+        )
     views = database.read_views(database_path)
     num_classic = dict(
         zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
