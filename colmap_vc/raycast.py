@@ -74,9 +74,8 @@ class MeshScene:
     e1: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) v1 - v0
     e2: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) v2 - v0
     normal: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) e1 x e2
-    projector: FloatArray = field(
-        init=False, repr=False
-    )  # (sum F_i, 2, 3) point -> (u, v)
+    proj_u: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) point -> u
+    proj_v: FloatArray = field(init=False, repr=False)  # (sum F_i, 3) point -> v
 
     def __post_init__(self) -> None:
         tri = (
@@ -105,10 +104,12 @@ class MeshScene:
         g22 = np.einsum("ij,ij->i", self.e2, self.e2)
         det = g11 * g22 - g12 * g12
         inv = np.where(np.abs(det) > 1e-30, 1.0 / np.where(det == 0, 1.0, det), 0.0)
-        proj = np.zeros((len(tri), 2, 3))
-        proj[:, 0] = (g22 * inv)[:, None] * self.e1 - (g12 * inv)[:, None] * self.e2
-        proj[:, 1] = (g11 * inv)[:, None] * self.e2 - (g12 * inv)[:, None] * self.e1
-        object.__setattr__(self, "projector", proj)
+        object.__setattr__(
+            self, "proj_u", (g22 * inv)[:, None] * self.e1 - (g12 * inv)[:, None] * self.e2
+        )
+        object.__setattr__(
+            self, "proj_v", (g11 * inv)[:, None] * self.e2 - (g12 * inv)[:, None] * self.e1
+        )
 
 
 def build_scene(
@@ -187,31 +188,33 @@ def _cast_once(
     """First hit of every ray -> (geom_idx, face_idx, t, bary); -1 / inf on a miss.
 
     Embree finds the face in float32; depth and barycentrics are then recomputed in
-    float64 against that face's plane (precomputed normals and projectors), so hit
+    float64 against that face's plane (precomputed normals and barycentric projectors), so hit
     points lie on the mesh and on the ray to ~1e-12 m.
     """
     if scene.uses_embree:
-        out = scene._engine[0].run(
-            origins.astype(np.float32), dirs.astype(np.float32), output=1
-        )
-        geom = out["geomID"].astype(np.int64)
+        # Embree wants contiguous float32; skip the copy when the caller has one.
+        o32 = origins if origins.dtype == np.float32 else origins.astype(np.float32)
+        d32 = dirs if dirs.dtype == np.float32 else dirs.astype(np.float32)
+        out = scene._engine[0].run(o32, d32, output=1)
         face = out["primID"].astype(np.int64)
+        geom = out["geomID"].astype(np.int64)
         t = np.full(len(origins), np.inf)
         bary = np.zeros((len(origins), 3))
-        hit = face >= 0
-        if hit.any():
+        hit = np.flatnonzero(face >= 0)  # integer indices: one pass, then gathers
+        if len(hit):
             row = scene.face_offset[geom[hit]] + face[hit]
+            d_hit = dirs[hit]
             n = scene.normal[row]
             rel = scene.v0[row] - origins[hit]
-            t_hit = np.einsum("ij,ij->i", n, rel) / np.einsum("ij,ij->i", n, dirs[hit])
+            t_hit = np.einsum("ij,ij->i", n, rel) / np.einsum("ij,ij->i", n, d_hit)
             t[hit] = t_hit
             # Exact float64 barycentrics of the float64 hit point in its face.
-            uv = np.einsum(
-                "nkd,nd->nk", scene.projector[row], t_hit[:, None] * dirs[hit] - rel
-            )
-            bary[hit] = np.stack(
-                [1.0 - uv[:, 0] - uv[:, 1], uv[:, 0], uv[:, 1]], axis=1
-            )
+            w = t_hit[:, None] * d_hit - rel
+            u = np.einsum("ij,ij->i", scene.proj_u[row], w)
+            v = np.einsum("ij,ij->i", scene.proj_v[row], w)
+            bary[hit, 0] = 1.0 - u - v
+            bary[hit, 1] = u
+            bary[hit, 2] = v
         return geom, face, t, bary
     geom, face = _cast_brute_force(scene, origins, dirs)
     t = np.full(len(origins), np.inf)
