@@ -21,12 +21,19 @@ import time
 
 import numpy as np
 import pycolmap
-from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
+from common import (
+    DOCS,
+    OUT,
+    machine,
+    replace_section,
+    setup_logging,
+    speed_scene,
+    write_json,
+)
 
 from colmap_vc import raycast
 from colmap_vc.augment import AugmentOptions, run
 from colmap_vc.priors import read_priors
-from colmap_vc.synthetic import SynthOptions, generate
 
 logger = logging.getLogger("bench.augment_speed")
 
@@ -82,13 +89,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=3)
     args = parser.parse_args()
     setup_logging()
-    scene = OUT / "scenes" / "speed_dome16"
-    if not (scene / "database.db").exists():
-        generate(
-            "dome",
-            scene,
-            SynthOptions(seed=100, num_cameras=16, num_people=3, overwrite=True),
-        )
+    scene = speed_scene()
     rays = raycast_ratio(scene, args.repeats)
     runs = []
     for _ in range(args.repeats):

@@ -59,3 +59,17 @@ def replace_section(doc: Path, marker: str, body: str) -> None:
     else:
         text = text.rstrip() + "\n\n" + block + "\n"
     doc.write_text(text)
+
+
+def speed_scene() -> Path:
+    """The 16-view, 3-person dome scene of the speed benchmarks (made once, seed 100)."""
+    from colmap_vc.synthetic import SynthOptions, generate
+
+    scene = OUT / "scenes" / "speed_dome16"
+    if not (scene / "database.db").exists():
+        generate(
+            "dome",
+            scene,
+            SynthOptions(seed=100, num_cameras=16, num_people=3, overwrite=True),
+        )
+    return scene

@@ -13,11 +13,18 @@ import argparse
 import shutil
 import time
 
-from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
+from common import (
+    DOCS,
+    OUT,
+    machine,
+    replace_section,
+    setup_logging,
+    speed_scene,
+    write_json,
+)
 
 from colmap_vc import augment, mapping
 from colmap_vc.refine import refine_model
-from colmap_vc.synthetic import SynthOptions, generate
 
 
 def main() -> None:
@@ -25,13 +32,7 @@ def main() -> None:
     parser.add_argument("--repeats", type=int, default=2)
     args = parser.parse_args()
     setup_logging()
-    scene = OUT / "scenes" / "speed_dome16"
-    if not (scene / "database.db").exists():
-        generate(
-            "dome",
-            scene,
-            SynthOptions(seed=100, num_cameras=16, num_people=3, overwrite=True),
-        )
+    scene = speed_scene()
     runs = []
     for _ in range(args.repeats):
         work = OUT / "runs" / "pipeline_speed"
