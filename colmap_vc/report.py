@@ -35,6 +35,7 @@ from colmap_vc.evaluation import (
     relative_pose,
 )
 from colmap_vc.structs import FloatArray, HitKind, PairVcMatches, VcKeypoints
+from colmap_vc.verification import epipolar_line_distances, skew
 
 if TYPE_CHECKING:
     from matplotlib.figure import Figure
@@ -86,21 +87,6 @@ class ReportInputs:
 # ---------------------------------------------------------------- geometry
 
 
-def _skew(v: FloatArray) -> FloatArray:
-    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
-
-
-def _line_distances(p1: FloatArray, p2: FloatArray, M: FloatArray) -> FloatArray:
-    """(N, 2) distances of homogeneous points to their epipolar lines (p2' M p1 = 0)."""
-    lines2 = p1 @ M.T  # epipolar lines in image 2
-    lines1 = p2 @ M  # epipolar lines in image 1
-    residual = np.abs(np.sum(p2 * lines2, axis=1))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        d2 = residual / np.hypot(lines2[:, 0], lines2[:, 1])
-        d1 = residual / np.hypot(lines1[:, 0], lines1[:, 1])
-    return np.column_stack([d1, d2])
-
-
 def epipolar_errors_px(
     xy1: FloatArray,
     xy2: FloatArray,
@@ -129,8 +115,8 @@ def epipolar_errors_px(
     # (N, 2) overload of cam_from_img: normalized coordinates, distortion undone.
     p1 = np.hstack([np.asarray(camera1.cam_from_img(xy1), np.float64), ones])
     p2 = np.hstack([np.asarray(camera2.cam_from_img(xy2), np.float64), ones])
-    E = _skew(cam2_from_cam1[:, 3]) @ cam2_from_cam1[:, :3]
-    d = _line_distances(p1, p2, E)
+    E = skew(cam2_from_cam1[:, 3]) @ cam2_from_cam1[:, :3]
+    d = epipolar_line_distances(p1, p2, E)
     focal = np.array([camera1.mean_focal_length(), camera2.mean_focal_length()])
     errors = np.mean(d * focal, axis=1)
     return np.where(np.isfinite(errors), errors, np.nan)
@@ -144,7 +130,7 @@ def fundamental_errors_px(
     ``F`` maps COLMAP-convention pixels, as COLMAP estimates it from stored keypoints.
     """
     ones = np.ones((len(xy1), 1))
-    d = _line_distances(np.hstack([xy1, ones]), np.hstack([xy2, ones]), F)
+    d = epipolar_line_distances(np.hstack([xy1, ones]), np.hstack([xy2, ones]), F)
     errors = np.mean(d, axis=1)
     return np.where(np.isfinite(errors), errors, np.nan)
 

@@ -130,6 +130,29 @@ def verify_pair(
     )
 
 
+def skew(v: FloatArray) -> FloatArray:
+    """(3, 3) cross-product matrix of v (3,)."""
+    return np.array([[0.0, -v[2], v[1]], [v[2], 0.0, -v[0]], [-v[1], v[0], 0.0]])
+
+
+def epipolar_line_distances(
+    p1: FloatArray, p2: FloatArray, M: FloatArray
+) -> FloatArray:
+    """(N, 2) distances of homogeneous points (N, 3) to their epipolar lines.
+
+    ``M`` is E (normalized coordinates) or F (pixels), with p2' M p1 = 0; column 0
+    is the distance in image 1, column 1 in image 2; NaN/inf where a line is
+    undefined (at the epipole).
+    """
+    lines2 = p1 @ M.T  # epipolar lines in image 2
+    lines1 = p2 @ M  # epipolar lines in image 1
+    residual = np.abs(np.sum(p2 * lines2, axis=1))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        d2 = residual / np.hypot(lines2[:, 0], lines2[:, 1])
+        d1 = residual / np.hypot(lines1[:, 0], lines1[:, 1])
+    return np.column_stack([d1, d2])
+
+
 def epipolar_errors_px(
     camera1: pycolmap.Camera,
     camera2: pycolmap.Camera,
@@ -148,14 +171,8 @@ def epipolar_errors_px(
         return np.zeros(0)
     x1 = np.c_[camera1.cam_from_img(xy1), np.ones(len(xy1))]
     x2 = np.c_[camera2.cam_from_img(xy2), np.ones(len(xy2))]
-    R, t = cam2_from_cam1[:, :3], cam2_from_cam1[:, 3]
-    tx = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]])
-    E = tx @ R
-    l2 = x1 @ E.T  # epipolar lines in image 2
-    l1 = x2 @ E  # epipolar lines in image 1
-    num = np.abs(np.einsum("ij,ij->i", x2, l2))
-    d2 = num / np.maximum(np.linalg.norm(l2[:, :2], axis=1), 1e-15)
-    d1 = num / np.maximum(np.linalg.norm(l1[:, :2], axis=1), 1e-15)
-    f1 = camera1.mean_focal_length()
-    f2 = camera2.mean_focal_length()
-    return np.maximum(d1 * f1, d2 * f2)
+    E = skew(cam2_from_cam1[:, 3]) @ cam2_from_cam1[:, :3]
+    d = epipolar_line_distances(x1, x2, E)
+    focal = np.array([camera1.mean_focal_length(), camera2.mean_focal_length()])
+    # 0/0 (a point at the epipole on its own line) is no error.
+    return np.nan_to_num(d * focal, nan=0.0).max(axis=1)
