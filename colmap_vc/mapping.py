@@ -12,7 +12,7 @@ import enum
 import logging
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -20,6 +20,7 @@ import pycolmap
 
 from . import database
 from .evaluation import relative_pose, rotation_angle_deg
+from .keypoint_ba import KeypointBaOptions, keypoint_bundle_adjustment
 from .meshalign import mesh_alignment_poses
 from .priors import read_priors
 from .structs import ScenePriors
@@ -75,6 +76,12 @@ class MappingOptions:
     bundle_adjustment: bool = True
     """Run COLMAP's local and global bundle adjustment (off: initialisation only, i.e.
     registration and triangulation with one global BA iteration, COLMAP's minimum)."""
+    keypoint_ba: bool = True
+    """Finish with the keypoint bundle adjustment (:mod:`colmap_vc.keypoint_ba`): the
+    people's keypoints as multi-view tracks by identity, robust loss, a budget of
+    surface-VC points. A database without keypoint VCs is left as mapped."""
+    keypoint_ba_options: KeypointBaOptions = field(default_factory=KeypointBaOptions)
+    """Options of that pass."""
     show_progress: bool = True
     """Log each registered image."""
 
@@ -445,18 +452,28 @@ def run(
     best = None if best_key is None else models[best_key]
     if options.mapper is Mapper.AUTO and priors is not None and num_images > 2:
         deviation = 180.0 if best is None else prior_deviation_deg(best, priors)
-        if deviation > options.max_prior_deviation_deg:
+        placeable = len(
+            mesh_alignment_poses(priors, image_names=set(views.image_names))
+        )
+        num_best = 0 if best is None else best.num_reg_images()
+        if deviation > options.max_prior_deviation_deg or num_best < placeable:
             logger.info(
-                "the incremental model contradicts the mesh prior (median %.0f deg > %.0f): "
-                "mesh-initialised mapping instead",
-                deviation,
-                options.max_prior_deviation_deg,
+                "the incremental model %s: mesh-initialised mapping instead",
+                f"contradicts the mesh prior (median {deviation:.0f} deg > "
+                f"{options.max_prior_deviation_deg:.0f})"
+                if deviation > options.max_prior_deviation_deg
+                else f"registers {num_best} images, the meshes place {placeable}",
             )
             rec = mesh_initialised(
                 database_path, image_dir, output_dir / "mesh", priors, options
             )
             if rec is not None and (
-                best is None or rec.num_reg_images() >= 0.8 * best.num_reg_images()
+                best is None
+                or rec.num_reg_images() > num_best
+                or (
+                    deviation > options.max_prior_deviation_deg
+                    and rec.num_reg_images() >= 0.8 * num_best
+                )
             ):
                 models, best_key, best = {"mesh": rec}, "mesh", rec
         else:
@@ -464,6 +481,12 @@ def run(
                 "the incremental model agrees with the mesh prior (median %.0f deg)",
                 deviation,
             )
+    if best is not None and options.keypoint_ba:
+        best, _ = keypoint_bundle_adjustment(
+            database_path, best, options.keypoint_ba_options
+        )
+        models[best_key] = best
+        best.write(output_dir / str(best_key))
     elapsed = time.perf_counter() - t0
     reasons = _why_unregistered(database_path, best)
     if best is None:

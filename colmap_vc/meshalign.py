@@ -11,7 +11,7 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from .structs import FloatArray, ImagePrior, ScenePriors
+from .structs import FloatArray, ImagePrior, PersonPrior, ScenePriors
 
 
 def procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
@@ -27,19 +27,32 @@ def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
     """cam2_from_cam1 (3, 4) from the predicted meshes of the people both images share.
 
     The paper's "deep optimization" analog: the same person's two predicted meshes
-    (same topology, vertex to vertex) aligned rigidly. People are matched by id; an
-    image pair without a shared id (or without ids) gives None.
+    (same topology, vertex to vertex) aligned rigidly. People are matched by id; two
+    images with one person each and no ids (what ``colmap-vc priors`` writes for
+    one-person scenes) are taken to show the same person, as ``augment``'s geometric
+    association takes them. Otherwise an image pair without a shared id gives None.
     """
-    by_id = {p.person_id: p for p in prior2.persons if p.person_id is not None}
-    src, dst = [], []
-    for p in prior1.persons:
-        q = by_id.get(p.person_id) if p.person_id is not None else None
-        if q is not None and len(q.vertices_cam) == len(p.vertices_cam):
-            src.append(p.vertices_cam)
-            dst.append(q.vertices_cam)
-    if not src:
+    pairs: list[tuple[PersonPrior, PersonPrior]] = []
+    if (
+        len(prior1.persons) == 1
+        and len(prior2.persons) == 1
+        and None in (prior1.persons[0].person_id, prior2.persons[0].person_id)
+    ):
+        pairs = [(prior1.persons[0], prior2.persons[0])]
+    else:
+        by_id = {p.person_id: p for p in prior2.persons if p.person_id is not None}
+        pairs = [
+            (p, by_id[p.person_id])
+            for p in prior1.persons
+            if p.person_id is not None and p.person_id in by_id
+        ]
+    pairs = [(p, q) for p, q in pairs if len(p.vertices_cam) == len(q.vertices_cam)]
+    if not pairs:
         return None
-    return procrustes(np.concatenate(src), np.concatenate(dst))
+    return procrustes(
+        np.concatenate([p.vertices_cam for p, _ in pairs]),
+        np.concatenate([q.vertices_cam for _, q in pairs]),
+    )
 
 
 def mesh_alignment_poses(

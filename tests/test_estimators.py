@@ -150,7 +150,14 @@ def test_prior_from_fit_is_valid_and_consistent(template, camera, rng, tmp_path)
     assert np.abs(xy - sm.xy_img).max() < 1e-4
     px = np.floor(sm.xy_img).astype(int)
     assert person.mask is not None and person.mask[px[:, 1], px[:, 0]].all()
-    assert person.keypoints_valid is not None and person.keypoints_valid.sum() == 12
+    # 17 joints (12 are BlazePose landmarks) + 7 surface landmarks, all valid here.
+    assert person.keypoints_valid is not None and person.keypoints_valid.shape == (24,)
+    assert person.keypoints_valid.sum() == 12 + len(body.SURFACE_LANDMARKS)
+    # The surface keypoints are vertices of the fitted mesh.
+    kp_cam = person.keypoints_cam
+    assert kp_cam is not None
+    gap = np.linalg.norm(kp_cam[17:, None] - person.vertices_cam[None], axis=2).min(1)
+    assert gap.max() < 1e-9
     # The priors format accepts it.
     write_priors(
         ScenePriors(

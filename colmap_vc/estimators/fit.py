@@ -9,9 +9,10 @@ a :class:`~colmap_vc.structs.PersonPrior`.
 
 The fit, in order (all numpy + scipy, no MediaPipe):
 
-1. **Left/right.** The person's facing direction from the labels (left-right axis x up)
-   must agree with the one the face (ears -> nose) and the feet (heel -> toe) point to;
-   if not, every left/right pair is relabelled (:func:`fix_left_right`).
+1. **Left/right.** The person's facing direction from the labels (left-right axis x up,
+   from the shoulders and from the hips) must agree with the one the face (ears ->
+   nose) and the feet (heel -> toe) point to; if both disagree, every left/right pair
+   is relabelled (:func:`fix_left_right`).
 2. **Shape.** The phenotype, or the blend of two, whose limb and torso lengths best
    match the 3D landmarks (:func:`choose_shape`). The body size sets the metric depth.
 3. **Pose.** The rest body is aligned to the 3D torso (Kabsch), then each limb bone is
@@ -133,38 +134,50 @@ def _min_rotation(a: FloatArray, b: FloatArray) -> FloatArray:
     return Rotation.from_rotvec(axis / s * np.arctan2(s, c)).as_matrix()
 
 
-def facing_cosine(landmarks: BodyLandmarks) -> float:
-    """Cosine between the facing directions of the labels and of the face and feet.
+def facing_cosines(landmarks: BodyLandmarks) -> tuple[float, float]:
+    """Cosines between the facing directions of the labels and of the face and feet.
 
-    Labels: (left - right) x up, from shoulders and hips (the person's left is -X and
-    forward is +Y in Anny's frame: forward = left x up). Face and feet: ears -> nose
-    plus heels -> toes, horizontal components. Negative: the labels are mirrored.
-    0 when either direction is undefined.
+    Labels: (left - right) x up, once from the shoulders and once from the hips (the
+    person's left is -X and forward is +Y in Anny's frame: forward = left x up). Face
+    and feet: ears -> nose plus heels -> toes, horizontal components. Negative: those
+    labels are mirrored. 0 when a direction is undefined.
     """
     p = landmarks.points_3d
     g = {n: p[landmark_index(n)] for n in BLAZEPOSE_NAMES}
     up = g["left_shoulder"] + g["right_shoulder"] - g["left_hip"] - g["right_hip"]
-    left = g["left_shoulder"] - g["right_shoulder"] + g["left_hip"] - g["right_hip"]
-    facing = np.cross(left, up)
+    up_n = up / max(np.linalg.norm(up), 1e-9)
     cue = g["nose"] - 0.5 * (g["left_ear"] + g["right_ear"])
     cue = cue / max(np.linalg.norm(cue), 1e-9)
     for s in ("left", "right"):
         foot = g[f"{s}_foot_index"] - g[f"{s}_heel"]
         cue = cue + 0.5 * foot / max(np.linalg.norm(foot), 1e-9)
-    up_n = up / max(np.linalg.norm(up), 1e-9)
     cue = cue - (cue @ up_n) * up_n
-    na, nb = np.linalg.norm(facing), np.linalg.norm(cue)
-    return 0.0 if na < 1e-9 or nb < 1e-9 else float(facing @ cue / (na * nb))
+    out = []
+    for part in ("shoulder", "hip"):
+        facing = np.cross(g[f"left_{part}"] - g[f"right_{part}"], up)
+        facing = facing - (facing @ up_n) * up_n
+        na, nb = np.linalg.norm(facing), np.linalg.norm(cue)
+        out.append(0.0 if na < 1e-9 or nb < 1e-9 else float(facing @ cue / (na * nb)))
+    return out[0], out[1]
+
+
+def facing_cosine(landmarks: BodyLandmarks) -> float:
+    """The larger of :func:`facing_cosines` (negative: the whole body is mirrored)."""
+    return max(facing_cosines(landmarks))
 
 
 def fix_left_right(
     landmarks: BodyLandmarks, options: FitOptions | None = None
 ) -> tuple[BodyLandmarks, bool]:
-    """Relabel left/right when the labels contradict the face and feet.
+    """Relabel left/right when the labels of the whole body contradict face and feet.
 
-    Rule: if :func:`facing_cosine` < ``-options.min_left_right_cos``, exchange every
-    left/right pair, in 2D and 3D together. Returns the landmarks and whether they were
-    relabelled.
+    Rule: if :func:`facing_cosine` < ``-options.min_left_right_cos`` (the shoulders
+    *and* the hips face away from where the face and feet point), exchange every
+    left/right pair, in 2D and 3D together. A partial contradiction (only the
+    shoulders, or only the hips) is left alone: on real photos it comes from a swap
+    of one part or from a wrong 3D face direction, which relabelling the whole body
+    makes worse (pose2sim t050, docs/real-data.md); ``augment`` handles part swaps
+    across views. Returns the landmarks and whether they were relabelled.
     """
     options = options or FitOptions()
     if (

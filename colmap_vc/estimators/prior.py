@@ -9,6 +9,7 @@ import pycolmap
 from colmap_vc import raycast
 from colmap_vc.estimators.body import (
     BLAZEPOSE_NAMES,
+    SURFACE_LANDMARKS,
     TEMPLATE_NAME,
     FitTemplate,
     landmark_index,
@@ -83,9 +84,10 @@ def prior_from_fit(
     ``mask`` (height, width) is the person's segmentation; it is cut to the fitted
     silhouette grown by 5 % of the person's size (so it never reaches another person)
     and the dense surface map ray-casts its pixels. Without a mask the rendered
-    silhouette is used (IoU 1). Keypoints are the 17 Anny joints: pixels from the
-    landmarks where one exists (valid if visible and inside the image), else the
-    fitted joint's projection (always invalid); 3D from the fitted mesh.
+    silhouette is used (IoU 1). Keypoints are the 17 Anny joints, then the 7 surface
+    landmarks (``SURFACE_LANDMARKS``: nose, ears, heels, toes; 24 in all): pixels from
+    the landmarks where one exists (valid if visible and inside the image), else the
+    fitted point's projection (always invalid); 3D from the fitted mesh.
     """
     template = template or load_template()
     model = template.model
@@ -107,9 +109,20 @@ def prior_from_fit(
         camera, fitted.vertices_cam, model.faces, person_mask, surface_stride_px
     )
     lm = fitted.landmarks
-    kp_xy = project_clamped(camera, fitted.joints_cam)
-    kp_valid = np.zeros(len(model.joint_names), dtype=bool)
-    for k, name in enumerate(model.joint_names):
+    # Keypoints: the 17 joints, then the surface landmarks (nose, ears, heels, toes)
+    # at their fitted vertices.
+    rows = np.array(
+        [
+            template.landmark_idx.tolist().index(landmark_index(n))
+            for n in SURFACE_LANDMARKS
+        ]
+    )
+    surface_cam = template.weights[rows] @ fitted.vertices_cam[template.vertex_idx]
+    kp_cam = np.concatenate([fitted.joints_cam, surface_cam])
+    kp_names = (*model.joint_names, *SURFACE_LANDMARKS)
+    kp_xy = project_clamped(camera, kp_cam)
+    kp_valid = np.zeros(len(kp_names), dtype=bool)
+    for k, name in enumerate(kp_names):  # loop over 24 names
         if name in BLAZEPOSE_NAMES:
             i = landmark_index(name)
             xy = lm.xy_img[i]
@@ -127,7 +140,7 @@ def prior_from_fit(
         confidence=float(np.clip(confidence, 0.0, 1.0)),
         surface_map=surface,
         keypoints_xy=kp_xy,
-        keypoints_cam=fitted.joints_cam,
+        keypoints_cam=kp_cam,
         keypoints_valid=kp_valid,
         mask=person_mask,
     )

@@ -1,0 +1,280 @@
+"""Keypoint bundle adjustment: the people's keypoints as multi-view tracks by identity.
+
+A keypoint VC (a landmark such as a knee or a heel) names the same 3D point in every
+view of the same person, so its multi-view track is known a priori: (person, keypoint).
+COLMAP's mapper instead builds tracks from the two-view inliers of verification, which
+on real photos drops the keypoints that disagree with the (biased) surface VCs and
+keeps a selection skewed by them. This pass rebuilds the model's keypoint points from
+identities (people linked across images by ``augment``'s person associations),
+triangulates them with the model's poses and runs COLMAP's bundle adjustment with a
+Cauchy loss scaled to the keypoints' pixel error, keeping classic (SIFT) points and a
+budget of the surface-VC points (``surface_ratio`` observations per keypoint
+observation: dense maps rendered from a mesh fitted to the same landmarks add
+correlated errors, docs/real-data.md).
+
+On pose2sim (docs/results.md) the pass converges to the same poses from the mapper's
+model, from the keypoint-only model and from the ground truth.
+"""
+
+from __future__ import annotations
+
+import logging
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from . import database
+from .structs import FloatArray, HitKind, IndexArray
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class KeypointBaOptions:
+    """Options of the keypoint bundle adjustment."""
+
+    loss_scale_px: float = 16.0
+    """Scale of the Cauchy loss, pixels (about the landmarks' error: MediaPipe's is
+    10-15 px median on 1920-px frames)."""
+    surface_ratio: float = 0.3
+    """Surface-VC observations kept per keypoint observation (an even random subset
+    of the model's VC-only points; negative: keep them all)."""
+    min_track_length: int = 2
+    """Keypoint tracks seen by fewer registered images are left out."""
+    seed: int = 0
+    """Seed of the surface subset."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class KeypointTracks:
+    """Keypoint observations grouped into multi-view tracks by identity."""
+
+    track: IndexArray  # (O,) int64 track index of each observation, sorted
+    image_id: IndexArray  # (O,) int64
+    point2D_idx: IndexArray  # (O,) int64, in the image's full keypoint list
+    xy_img: FloatArray  # (O, 2) float64
+
+    def __post_init__(self) -> None:
+        n = self.track.shape[0]
+        for name in ("image_id", "point2D_idx"):
+            if getattr(self, name).shape != (n,):
+                raise ValueError(f"{name} has shape {getattr(self, name).shape}")
+        if self.xy_img.shape != (n, 2):
+            raise ValueError(f"xy_img has shape {self.xy_img.shape}")
+
+    @property
+    def num_tracks(self) -> int:
+        return int(self.track.max()) + 1 if len(self.track) else 0
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class KeypointBaSummary:
+    """What the keypoint bundle adjustment did."""
+
+    num_tracks: int
+    num_keypoint_observations: int
+    num_surface_observations: int  # kept
+    num_surface_observations_dropped: int
+    elapsed_s: float
+
+
+def person_identities(
+    associations: list[database.PersonAssociation],
+) -> dict[tuple[int, int], int]:
+    """(image_id, person_id) -> identity, by union-find over the associations."""
+    parent: dict[tuple[int, int], tuple[int, int]] = {}
+
+    def find(a: tuple[int, int]) -> tuple[int, int]:
+        parent.setdefault(a, a)
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for a in associations:  # loop over person pairs (a handful per image pair)
+        ra = find((a.image_id1, a.person_id1))
+        rb = find((a.image_id2, a.person_id2))
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+    roots = sorted({find(k) for k in parent})
+    index = {r: i for i, r in enumerate(roots)}
+    return {k: index[find(k)] for k in parent}
+
+
+def keypoint_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTracks:
+    """The keypoint VCs of the given images, as tracks (person identity, keypoint).
+
+    A VC keypoint is a keypoint when some pair matched it as ``HitKind.KEYPOINT``; its
+    identity is its person's (``person_identities``) and its template track id.
+    """
+    views = database.read_views(database_path)
+    num_classic = dict(
+        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
+    )
+    vc_keypoints, pairs = database.read_virtual_correspondences(database_path)
+    identity = person_identities(database.read_person_associations(database_path))
+    is_kp: dict[int, np.ndarray] = {
+        v.image_id: np.zeros(len(v.track_id), dtype=bool) for v in vc_keypoints
+    }
+    for p in pairs:  # loop over image pairs, vectorized over VCs
+        kp = p.kind == HitKind.KEYPOINT
+        is_kp[p.image_id1][p.idx1[kp]] = True
+        is_kp[p.image_id2][p.idx2[kp]] = True
+    wanted = set(np.asarray(image_ids).tolist())
+    parts = []
+    for v in vc_keypoints:  # loop over images
+        if v.image_id not in wanted or not is_kp[v.image_id].any():
+            continue
+        rows = np.flatnonzero(is_kp[v.image_id])
+        ident = np.array(
+            [identity.get((v.image_id, int(p)), -1) for p in v.person_id[rows]],
+            dtype=np.int64,
+        )
+        ok = ident >= 0
+        rows = rows[ok]
+        parts.append(
+            (
+                ident[ok],
+                v.track_id[rows],
+                np.full(len(rows), v.image_id, dtype=np.int64),
+                num_classic[v.image_id] + rows,
+                v.xy_img[rows],
+            )
+        )
+    if not parts:
+        z = np.zeros(0, dtype=np.int64)
+        return KeypointTracks(
+            track=z, image_id=z, point2D_idx=z, xy_img=np.zeros((0, 2))
+        )
+    ident, track_id, image_id, idx, xy = (
+        np.concatenate(a) for a in zip(*parts, strict=True)
+    )
+    _, track = np.unique(
+        np.stack([ident, track_id], axis=1), axis=0, return_inverse=True
+    )
+    order = np.argsort(track, kind="stable")
+    return KeypointTracks(
+        track=track.ravel()[order].astype(np.int64),
+        image_id=image_id[order],
+        point2D_idx=idx[order],
+        xy_img=xy[order],
+    )
+
+
+def triangulate_tracks(
+    rec: pycolmap.Reconstruction, tracks: KeypointTracks
+) -> tuple[FloatArray, IndexArray]:
+    """DLT point (T, 3) of each track (the model's poses) and its view count (T,)."""
+    num = tracks.num_tracks
+    rows = np.zeros((len(tracks.track), 2, 4))
+    for image_id in np.unique(tracks.image_id):  # loop over images, vectorized over obs
+        sel = tracks.image_id == image_id
+        image = rec.image(int(image_id))
+        T = image.cam_from_world().matrix()
+        uv = np.asarray(rec.camera(image.camera_id).cam_from_img(tracks.xy_img[sel]))
+        rows[sel, 0] = uv[:, :1] * T[2] - T[0]
+        rows[sel, 1] = uv[:, 1:2] * T[2] - T[1]
+    rows /= np.linalg.norm(rows, axis=2, keepdims=True)
+    A = np.zeros((num, 4, 4))  # normal equations A^T A per track
+    np.add.at(A, tracks.track, np.einsum("oki,okj->oij", rows, rows))
+    _, vecs = np.linalg.eigh(A)
+    X = vecs[:, :, 0]
+    w = np.where(np.abs(X[:, 3]) > 1e-12, X[:, 3], np.nan)
+    counts = np.bincount(tracks.track, minlength=num)
+    return X[:, :3] / w[:, None], counts
+
+
+def keypoint_bundle_adjustment(
+    database_path: Path,
+    rec: pycolmap.Reconstruction,
+    options: KeypointBaOptions | None = None,
+) -> tuple[pycolmap.Reconstruction, KeypointBaSummary]:
+    """A copy of ``rec`` with keypoint tracks by identity, bundle-adjusted (module doc).
+
+    ``rec`` is not modified. A database without keypoint VCs returns a plain copy.
+    """
+    options = options or KeypointBaOptions()
+    t0 = time.perf_counter()
+    out = pycolmap.Reconstruction(rec)
+    registered = np.array(
+        [i for i, im in out.images.items() if im.has_pose], dtype=np.int64
+    )
+    tracks = keypoint_tracks(Path(database_path), registered)
+    if tracks.num_tracks == 0:
+        logger.info(
+            "keypoint BA: no keypoint VCs in %s: model unchanged", database_path
+        )
+        return out, KeypointBaSummary(
+            num_tracks=0,
+            num_keypoint_observations=0,
+            num_surface_observations=0,
+            num_surface_observations_dropped=0,
+            elapsed_s=time.perf_counter() - t0,
+        )
+    views = database.read_views(database_path)
+    num_classic = dict(
+        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
+    )
+    # The model's points: classic ones stay; VC-only ones are surface points (the
+    # keypoint ones are rebuilt below), thinned to the budget.
+    keypoint_obs = set(
+        zip(tracks.image_id.tolist(), tracks.point2D_idx.tolist(), strict=True)
+    )
+    vc_only, vc_obs, stale, dropped = [], [], [], 0
+    for point_id, point in out.points3D.items():  # loop over the model's points
+        els = [(e.image_id, e.point2D_idx) for e in point.track.elements]
+        if any(idx < num_classic[i] for i, idx in els):
+            continue
+        if any(e in keypoint_obs for e in els):
+            stale.append(point_id)
+            continue
+        vc_only.append(point_id)
+        vc_obs.append(len(els))
+    for point_id in stale:  # deleting while iterating over points3D crashes pycolmap
+        out.delete_point3D(point_id)
+    X, counts = triangulate_tracks(out, tracks)
+    good = (counts >= options.min_track_length) & np.isfinite(X).all(axis=1)
+    num_kp_obs = int(counts[good].sum())
+    if options.surface_ratio >= 0 and vc_only:
+        order = np.random.default_rng(options.seed).permutation(len(vc_only))
+        kept_obs = np.cumsum(np.asarray(vc_obs)[order])
+        budget = options.surface_ratio * num_kp_obs
+        for k in order[kept_obs > budget]:
+            dropped += vc_obs[k]
+            out.delete_point3D(vc_only[k])
+    starts = np.searchsorted(tracks.track, np.arange(tracks.num_tracks))
+    ends = np.r_[starts[1:], len(tracks.track)]
+    for t in np.flatnonzero(good):  # loop over tracks: pycolmap's API adds one point
+        track = pycolmap.Track()
+        for o in range(starts[t], ends[t]):
+            track.add_element(int(tracks.image_id[o]), int(tracks.point2D_idx[o]))
+        out.add_point3D(X[t], track)
+    ba = pycolmap.BundleAdjustmentOptions(
+        refine_focal_length=False,
+        refine_principal_point=False,
+        refine_extra_params=False,
+        print_summary=False,
+    )
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.loss_function_scale = options.loss_scale_px
+    pycolmap.bundle_adjustment(out, ba)
+    summary = KeypointBaSummary(
+        num_tracks=int(good.sum()),
+        num_keypoint_observations=num_kp_obs,
+        num_surface_observations=int(sum(vc_obs)) - dropped,
+        num_surface_observations_dropped=dropped,
+        elapsed_s=time.perf_counter() - t0,
+    )
+    logger.info(
+        "keypoint BA: %d keypoint tracks (%d observations), %d surface-VC "
+        "observations kept, %d dropped (%.1f s)",
+        summary.num_tracks,
+        summary.num_keypoint_observations,
+        summary.num_surface_observations,
+        summary.num_surface_observations_dropped,
+        summary.elapsed_s,
+    )
+    return out, summary
