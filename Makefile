@@ -62,7 +62,9 @@ bench-synth: $(STAMP)
 	$(PY) bench/classic.py
 	$(PY) bench/synth_speed.py
 
-bench: bench-synth
+bench: bench-synth mediapipe
+	$(PY) bench/accuracy.py --seeds 0 1
+	$(PY) bench/pose2sim.py
 
 # Dev only: re-export the Anny bodies (needs CPU torch, kept out of the core venv).
 bodies:

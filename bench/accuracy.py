@@ -6,9 +6,11 @@ bins; priors `clean`, `realistic` and `hard`; several seeds. Methods:
 - classic COLMAP: SIFT, exhaustive matching, incremental mapping (COLMAP defaults);
 - mesh alignment: Procrustes between the predicted meshes of the same person;
 - VC init: VCs only, registration and triangulation without COLMAP's BA;
-- VC + BA: VCs only, pycolmap incremental mapping;
-- VC + GBA: then the generalized bundle adjustment;
-- VC + classic + GBA: VCs verified jointly with the classic matches, mapping, GBA.
+- VC + BA: VCs only, pycolmap incremental mapping (COLMAP's BA);
+- VC + keypoint BA: then the keypoint bundle adjustment (`colmap-vc map`'s default);
+- VC + GBA: the mapper's model, then the generalized bundle adjustment;
+- VC + classic + keypoint BA: VCs verified jointly with the classic matches, `map`;
+- VC + classic + GBA: the same, the mapper's model refined by GBA instead.
 
     .venv/bin/python bench/accuracy.py [--seeds 0 1 2] [--quick]
 
@@ -52,7 +54,9 @@ METHODS = (
     "mesh alignment",
     "VC init",
     "VC + BA",
+    "VC + keypoint BA",
     "VC + GBA",
+    "VC + classic + keypoint BA",
     "VC + classic + GBA",
 )
 
@@ -90,6 +94,7 @@ def run_vc(
     *,
     with_classic: bool,
     ba: bool,
+    kba: bool,
     gba: bool,
 ):
     """Augment a copy of the scene's database and map it; returns the model or None."""
@@ -107,7 +112,9 @@ def run_vc(
         db,
         scene_dir / "images",
         work / "sparse",
-        mapping.MappingOptions(bundle_adjustment=ba, show_progress=False),
+        mapping.MappingOptions(
+            bundle_adjustment=ba, keypoint_ba=kba, show_progress=False
+        ),
     )
     if rec is not None and gba:
         from colmap_vc.refine import refine_model
@@ -127,19 +134,25 @@ def evaluate_scene(
         "mesh alignment": evaluate_poses(mesh_alignment_poses(priors), gt_poses),
     }
     has_gba = _gba_available()
-    arms = {"VC init": (False, False, False), "VC + BA": (False, True, False)}
+    arms = {
+        "VC init": (False, False, False, False),
+        "VC + BA": (False, True, False, False),
+        "VC + keypoint BA": (False, True, True, False),
+        "VC + classic + keypoint BA": (True, True, True, False),
+    }
     if has_gba:
         arms |= {
-            "VC + GBA": (False, True, True),
-            "VC + classic + GBA": (True, True, True),
+            "VC + GBA": (False, True, False, True),
+            "VC + classic + GBA": (True, True, False, True),
         }
-    for name, (with_classic, ba, gba) in arms.items():
+    for name, (with_classic, ba, kba, gba) in arms.items():
         rec = run_vc(
             scene_dir,
             scene_dir / LEVELS[level],
             work / name.replace(" ", "_").replace("+", "p"),
             with_classic=with_classic,
             ba=ba,
+            kba=kba,
             gba=gba,
         )
         out[name] = evaluate_reconstruction(rec, gt)

@@ -77,7 +77,7 @@ class MappingOptions:
     """Run COLMAP's local and global bundle adjustment (off: initialisation only, i.e.
     registration and triangulation with one global BA iteration, COLMAP's minimum)."""
     keypoint_ba: bool = True
-    """Finish with the keypoint bundle adjustment (:mod:`colmap_vc.keypoint_ba`): the
+    """Finish with the keypoint bundle adjustment (colmap_vc/keypoint_ba.py): the
     people's keypoints as multi-view tracks by identity, robust loss, a budget of
     surface-VC points. A database without keypoint VCs is left as mapped."""
     keypoint_ba_options: KeypointBaOptions = field(default_factory=KeypointBaOptions)

@@ -229,3 +229,32 @@ def test_not_a_database_and_no_keypoints(tmp_path, dome_scene):
         conn.execute("DELETE FROM keypoints")
     with pytest.raises(ValueError, match="feature extraction"):
         augment.run(empty, dome_scene / "priors")
+
+
+def test_ransac_threshold_scales_with_image_size(rng):
+    from colmap_vc.verification import VerificationOptions, max_error_px, verify_pair
+
+    small = pycolmap.Camera(
+        model="PINHOLE", width=640, height=480, params=[500, 500, 320, 240]
+    )
+    big = pycolmap.Camera(
+        model="PINHOLE", width=1080, height=1920, params=[1500, 1500, 540, 960]
+    )
+    opts = VerificationOptions()
+    assert max_error_px(opts, small, small) == 4.0
+    assert max_error_px(opts, small, big) == pytest.approx(12.0)
+    off = dataclasses.replace(opts, reference_image_size_px=0)
+    assert max_error_px(off, big, big) == 4.0
+    # Two big views of a random cloud; matches perturbed by ~8 px: the scaled
+    # threshold verifies them, the unscaled 4 px keeps few.
+    points = rng.uniform([-1, -1, 4], [1, 1, 6], size=(200, 3))
+    R = pycolmap.Rotation3d(np.array([0.0, 0.5, 0.0])).matrix()
+    t = np.array([-2.0, 0.0, 0.5])
+    xy1 = np.asarray(big.img_from_cam(points))
+    xy2 = np.asarray(big.img_from_cam(points @ R.T + t))
+    xy2 = xy2 + rng.normal(scale=5.0, size=xy2.shape)
+    scaled = verify_pair(big, big, xy1, xy2, options=opts)
+    unscaled = verify_pair(big, big, xy1, xy2, options=off)
+    assert scaled.geometry is not None
+    assert scaled.vc_is_inlier.mean() > 0.9
+    assert unscaled.vc_is_inlier.mean() < scaled.vc_is_inlier.mean() - 0.1

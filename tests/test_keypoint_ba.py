@@ -90,7 +90,7 @@ def test_keypoint_ba_pulls_perturbed_poses_back(dome_scene, mapped, rng):
     assert evaluate_reconstruction(perturbed, gt).median_error_deg > 3.0
     snapshot = {i: im.cam_from_world().matrix() for i, im in perturbed.images.items()}
     out, summary = keypoint_bundle_adjustment(
-        db, perturbed, KeypointBaOptions(surface_ratio=0.0)
+        db, perturbed, KeypointBaOptions(surface_per_image=0.0)
     )
     assert summary.num_tracks > 0 and summary.num_surface_observations == 0
     assert evaluate_reconstruction(out, gt).median_error_deg < max(1.0, 2 * before)
