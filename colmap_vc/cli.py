@@ -113,20 +113,22 @@ class Augment:
 
 @dataclass(frozen=True)
 class Map:
-    """Map an augmented (or plain) COLMAP database with pycolmap, then refine with GBA."""
+    """Map an augmented (or plain) COLMAP database: pycolmap mapping, keypoint BA."""
 
     database: tyro.conf.Positional[Path]
     """COLMAP database (augmented by `colmap-vc augment`, or plain)."""
     image_path: Path
     """Image folder."""
     output_path: Path
-    """Output folder for the models (<k>/ per model; refined/ after GBA)."""
+    """Output folder for the models (<k>/ per model; refined/ after --gba)."""
     priors: Path | None = None
     """Priors (default: those `augment` recorded); the auto mapper checks its model
     against the meshes and the mesh mapper starts from them."""
     options: tyro.conf.OmitArgPrefixes[MappingOptions] = MappingOptions()
-    gba: bool = True
-    """Run the generalized bundle adjustment after mapping (--no-gba to skip)."""
+    gba: bool = False
+    """Also run the generalized bundle adjustment with the VC tuples (into refined/).
+    Off by default: after the keypoint BA it made every synthetic dome scene worse
+    (docs/results.md, VC + keypoint BA against VC + GBA)."""
     overwrite: bool = False
     """Replace a non-empty OUTPUT_PATH."""
     verbose: bool = False
