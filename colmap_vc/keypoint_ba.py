@@ -157,6 +157,24 @@ def keypoint_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTrack
     ident, track_id, image_id, idx, xy = (
         np.concatenate(a) for a in zip(*parts, strict=True)
     )
+    # A chain of wrong associations can put two people of one image into one
+    # identity: such tracks would see an image twice, so they are left out.
+    _, track_of = np.unique(
+        np.stack([ident, track_id], axis=1), axis=0, return_inverse=True
+    )
+    track_of = track_of.ravel()
+    _, first, seen = np.unique(
+        np.stack([track_of, image_id], axis=1),
+        axis=0,
+        return_index=True,
+        return_counts=True,
+    )
+    bad = np.zeros(track_of.max() + 1, dtype=bool)
+    bad[track_of[first[seen > 1]]] = True
+    keep = ~bad[track_of]
+    ident, track_id, image_id, idx, xy = (
+        a[keep] for a in (ident, track_id, image_id, idx, xy)
+    )
     _, track = np.unique(
         np.stack([ident, track_id], axis=1), axis=0, return_inverse=True
     )
@@ -231,10 +249,10 @@ def keypoint_bundle_adjustment(
     vc_only, vc_obs, stale, dropped = [], [], [], 0
     for point_id, point in out.points3D.items():  # loop over the model's points
         els = [(e.image_id, e.point2D_idx) for e in point.track.elements]
-        if any(idx < num_classic[i] for i, idx in els):
-            continue
         if any(e in keypoint_obs for e in els):
-            stale.append(point_id)
+            stale.append(point_id)  # rebuilt below, by identity
+            continue
+        if any(idx < num_classic[i] for i, idx in els):
             continue
         vc_only.append(point_id)
         vc_obs.append(len(els))
