@@ -13,13 +13,14 @@ colmap-vc (surface VCs + keypoints), both with `colmap-vc map`'s defaults.
   each camera: one image per camera (the t010 photo), its priors holding the 5
   instants' people with the instant as person id, people not occluding each other.
 
-    .venv/bin/python bench/pose2sim.py     (needs `make mediapipe`)
+    .venv/bin/python bench/pose2sim.py [--seeds 0 1 2]     (needs `make mediapipe`)
 
 Writes bench/out/pose2sim.json and a section of docs/results.md.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import shutil
@@ -121,8 +122,13 @@ def run_method(
     gt: dict[str, np.ndarray],
     matching: MatchingOptions | None,
     few: bool = False,
+    seed: int = 0,
 ) -> Metrics:
-    """augment (unless classic) + map + eval on a copy of the database."""
+    """augment (unless classic) + map + eval on a copy of the database.
+
+    ``seed`` seeds the RANSAC of verification and COLMAP's mapper (the spread over
+    seeds is the run-to-run noise of a result).
+    """
     work.mkdir(parents=True, exist_ok=True)
     run_db = work / "database.db"
     shutil.copyfile(db, run_db)
@@ -133,7 +139,9 @@ def run_method(
             augment.AugmentOptions(
                 matching=matching or MatchingOptions(),
                 show_progress=False,
-                verification=FEW["verification"] if few else VerificationOptions(),
+                verification=replace(
+                    FEW["verification"] if few else VerificationOptions(), seed=seed
+                ),
                 min_num_vcs=8 if few else augment.AugmentOptions().min_num_vcs,
             ),
         )
@@ -142,6 +150,7 @@ def run_method(
         if priors_dir is None
         else (FEW["mapping"] if few else mapping.MappingOptions(show_progress=False))
     )
+    options = replace(options, seed=seed)
     rec, _ = mapping.run_incremental(run_db, DATA / "images", work / "sparse", options)
     pred = (
         {}
@@ -167,11 +176,8 @@ def pooled(ms: list[Metrics]) -> dict:
     }
 
 
-def main() -> None:
-    setup_logging()
-    t0 = time.perf_counter()
-    out = OUT / "pose2sim"
-    cameras, gt_all, cam_names = load_cameras()
+def estimate(cameras: dict[str, pycolmap.Camera], out: Path) -> ScenePriors:
+    """The MediaPipe priors of all 20 photos (made once, then read back)."""
     priors_dir = out / "priors"
     if not (priors_dir / "priors.json").exists():
         from colmap_vc.estimators import EstimatorOptions, run_estimator
@@ -182,74 +188,92 @@ def main() -> None:
             cameras=cameras,
             options=EstimatorOptions(show_progress=False),
         )
-    priors = read_priors(priors_dir)
+    return read_priors(priors_dir)
+
+
+def prepare(
+    cameras: dict[str, pycolmap.Camera],
+    cam_names: list[str],
+    priors: ScenePriors,
+    out: Path,
+) -> dict[str, tuple[Path, Path]]:
+    """Per setting (each instant, and "all"): its SIFT database and priors folder.
+
+    "all" is the five instants of the static cameras: one image per camera (the t010
+    photo), its priors holding the person of every instant, the instant as person id.
+    """
+    faces = {"anny": next(iter(priors.images.values())).persons[0].faces}
+    setups = {}
+    for instant in INSTANTS:
+        images = [f"{c}_{instant}.jpg" for c in cam_names]
+        db = make_database(images, cameras, out / instant)
+        sub = out / instant / "priors"
+        write_priors(
+            ScenePriors(images={n: priors.images[n] for n in images}),
+            sub,
+            templates=faces,
+        )
+        setups[instant] = (db, sub)
+    rep = {c: f"{c}_t010.jpg" for c in cam_names}
+    merged = {}
+    for c in cam_names:
+        persons = [
+            replace(p, person_id=k)
+            for k, instant in enumerate(INSTANTS)
+            for p in priors.images[f"{c}_{instant}.jpg"].persons[:1]  # one per instant
+        ]
+        merged[rep[c]] = ImagePrior(image_name=rep[c], persons=tuple(persons))
+    merged_dir = out / "all" / "priors"
+    write_priors(ScenePriors(images=merged), merged_dir, templates=faces)
+    setups["all"] = (
+        make_database(list(rep.values()), cameras, out / "all"),
+        merged_dir,
+    )
+    return setups
+
+
+def run_seed(
+    seed: int,
+    setups: dict[str, tuple[Path, Path]],
+    gt_all: dict[str, np.ndarray],
+    cam_names: list[str],
+    out: Path,
+) -> dict:
+    """Every method on every setting with one seed -> the summary dict."""
     methods = {
         "keypoint-only baseline": MatchingOptions(use_surface_samples=False),
         "colmap-vc (VCs + keypoints)": MatchingOptions(),
     }
     results: dict[str, dict[str, list[Metrics]]] = {}
-    for instant in INSTANTS:
-        images = [f"{c}_{instant}.jpg" for c in cam_names]
-        gt = {n: gt_all[n] for n in images}
-        db = make_database(images, cameras, out / instant)
-        results.setdefault("classic COLMAP", {}).setdefault(instant, []).append(
-            run_method(db, None, out / instant / "classic", gt, None)
-        )
-        sub = out / instant / "priors"
-        write_priors(
-            ScenePriors(images={n: priors.images[n] for n in images}),
-            sub,
-            templates={"anny": next(iter(priors.images.values())).persons[0].faces},
-        )
-        results.setdefault("mesh alignment", {}).setdefault(instant, []).append(
-            evaluate_poses(mesh_alignment_poses(read_priors(sub)), gt)
-        )
+    five: dict[str, Metrics] = {}
+    for setting, (db, sub) in setups.items():
+        instant = "t010" if setting == "all" else setting
+        gt = {f"{c}_{instant}.jpg": gt_all[f"{c}_{instant}.jpg"] for c in cam_names}
+        work = out / f"seed{seed}" / setting
+        row = {
+            "classic COLMAP": run_method(
+                db, None, work / "classic", gt, None, seed=seed
+            ),
+            "mesh alignment": evaluate_poses(
+                mesh_alignment_poses(read_priors(sub)), gt
+            ),
+        }
         for name, opts in methods.items():
-            results.setdefault(name, {}).setdefault(instant, []).append(
-                run_method(
-                    db,
-                    sub,
-                    out / instant / name.split()[0],
-                    gt,
-                    opts,
-                    few=name.startswith("keypoint"),
-                )
+            row[name] = run_method(
+                db,
+                sub,
+                work / name.split()[0],
+                gt,
+                replace(opts, people_occlude=setting != "all"),
+                few=name.startswith("keypoint"),
+                seed=seed,
             )
-    # Five instants: one image per camera holding the person of every instant.
-    rep = {c: f"{c}_t010.jpg" for c in cam_names}
-    merged = {}
-    for c in cam_names:
-        persons = []
-        for k, instant in enumerate(INSTANTS):
-            for p in priors.images[f"{c}_{instant}.jpg"].persons[
-                :1
-            ]:  # one person per instant
-                persons.append(replace(p, person_id=k))
-        merged[rep[c]] = ImagePrior(image_name=rep[c], persons=tuple(persons))
-    merged_dir = out / "all" / "priors"
-    write_priors(
-        ScenePriors(images=merged),
-        merged_dir,
-        templates={"anny": next(iter(priors.images.values())).persons[0].faces},
-    )
-    gt = {rep[c]: gt_all[rep[c]] for c in cam_names}
-    db = make_database(list(rep.values()), cameras, out / "all")
-    five = {
-        "classic COLMAP": run_method(db, None, out / "all" / "classic", gt, None),
-        "mesh alignment": evaluate_poses(
-            mesh_alignment_poses(read_priors(merged_dir)), gt
-        ),
-    }
-    for name, opts in methods.items():
-        five[name] = run_method(
-            db,
-            merged_dir,
-            out / "all" / name.split()[0],
-            gt,
-            replace(opts, people_occlude=False),
-            few=name.startswith("keypoint"),
-        )
-    summary = {
+        for name, m in row.items():
+            if setting == "all":
+                five[name] = m
+            else:
+                results.setdefault(name, {}).setdefault(setting, []).append(m)
+    return {
         "one_instant_pooled": {
             m: pooled([x for ms in by_i.values() for x in ms])
             for m, by_i in results.items()
@@ -259,11 +283,33 @@ def main() -> None:
         },
         "five_instants": {m: pooled([x]) for m, x in five.items()},
     }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "--seeds",
+        type=int,
+        nargs="+",
+        default=[0, 1, 2],
+        help="RANSAC and mapper seeds; the tables show the first, a line the spread",
+    )
+    args = parser.parse_args()
+    setup_logging()
+    t0 = time.perf_counter()
+    out = OUT / "pose2sim"
+    cameras, gt_all, cam_names = load_cameras()
+    priors = estimate(cameras, out)
+    setups = prepare(cameras, cam_names, priors, out)
+    by_seed = {s: run_seed(s, setups, gt_all, cam_names, out) for s in args.seeds}
+    summary = by_seed[args.seeds[0]]
     write_json(
         "pose2sim.json",
         {
             "machine": machine(),
+            "seeds": args.seeds,
             "summary": summary,
+            "by_seed": by_seed,
             "elapsed_s": time.perf_counter() - t0,
         },
     )
@@ -301,11 +347,31 @@ def main() -> None:
         )
     lines += [
         "",
+        f"Seeds {', '.join(map(str, args.seeds))} (RANSAC and mapper; the tables show "
+        f"seed {args.seeds[0]}), AUC@15/30/45:",
+        "",
+        "| setting | method | " + " | ".join(f"seed {x}" for x in args.seeds) + " |",
+        "|---|---|" + "---|" * len(args.seeds),
+        *(
+            f"| {label} | {method} | "
+            + " | ".join(
+                "/".join(f"{a:.1f}" for a in by_seed[x][key][method]["auc"].values())
+                for x in args.seeds
+            )
+            + " |"
+            for key, label in (
+                ("one_instant_pooled", "one instant"),
+                ("five_instants", "five instants"),
+            )
+            for method in ("keypoint-only baseline", "colmap-vc (VCs + keypoints)")
+        ),
+        "",
         "Per-pair errors (deg), five instants: "
         + "; ".join(f"{m}: {r['pairs']}" for m, r in summary["five_instants"].items()),
         "",
         f"Measured at commit {machine()['commit']} by "
-        "`.venv/bin/python bench/pose2sim.py` (after `make mediapipe`); raw numbers in "
+        "`.venv/bin/python bench/pose2sim.py --seeds "
+        f"{' '.join(map(str, args.seeds))}` (after `make mediapipe`); raw numbers in "
         "`bench/out/pose2sim.json`.",
     ]
     replace_section(

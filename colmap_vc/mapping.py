@@ -103,6 +103,8 @@ class MappingSummary:
         return len(self.registered)
 
 
+MIN_MESH_INIT_POINTS = 20  # fewer triangulated points: too few for a stable BA
+
 # COLMAP's own defaults, for the classic baseline.
 COLMAP_DEFAULTS = MappingOptions(
     mapper=Mapper.INCREMENTAL,
@@ -210,6 +212,7 @@ def mesh_initialised(
     )
     pipeline.triangulation.create_max_angle_error = 10.0
     output_dir.mkdir(parents=True, exist_ok=True)
+    posed = pycolmap.Reconstruction(rec)  # the mesh-alignment cameras alone
     for _ in range(num_rounds):
         rec = pycolmap.triangulate_points(
             rec,
@@ -219,9 +222,25 @@ def mesh_initialised(
             clear_points=True,
             options=pipeline,
         )
-        if rec.num_points3D() == 0:
-            return None
+        if rec.num_points3D() < MIN_MESH_INIT_POINTS:
+            break
         _ceres_ba(rec, loss_scale_px=options.filter_max_reproj_error_px / 2)
+    if rec.num_points3D() < MIN_MESH_INIT_POINTS:
+        if not options.keypoint_ba:
+            return None
+        # Too few verified matches to triangulate (one person, failed RANSAC): the
+        # keypoint BA needs none, its tracks come from identities.
+        logger.info(
+            "mesh-initialised mapping: %d points triangulated; keeping the "
+            "mesh-alignment cameras for the keypoint bundle adjustment",
+            rec.num_points3D(),
+        )
+        for point_id in list(rec.point3D_ids()):
+            rec.delete_point3D(point_id)
+        for image_id, image in posed.images.items():  # rec keeps its points2D
+            rec.frame(rec.image(image_id).frame_id).rig_from_world = (
+                image.cam_from_world()
+            )
     rec.write(output_dir)
     return rec
 
