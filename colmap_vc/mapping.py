@@ -46,8 +46,9 @@ class MappingOptions:
     mapper: Mapper = Mapper.AUTO
     """auto: pycolmap's incremental mapper, whose result is checked against the coarse
     camera poses the predicted meshes give (mesh alignment); when it contradicts them
-    (a mirrored two-view start, typical with one person), the mesh-initialised mapper
-    replaces it. incremental / global (GLOMAP) / mesh force one mapper."""
+    (a mirrored two-view start, typical with one person) or registers fewer images
+    than the meshes can place, the mesh-initialised mapper replaces it (if it does
+    better). incremental / global (GLOMAP) / mesh force one mapper."""
     max_prior_deviation_deg: float = 35.0
     """auto: largest median rotation difference to the mesh prior that is accepted."""
     refine_intrinsics: bool = False
@@ -238,9 +239,9 @@ def mesh_initialised(
         for point_id in list(rec.point3D_ids()):
             rec.delete_point3D(point_id)
         for image_id, image in posed.images.items():  # rec keeps its points2D
-            rec.frame(rec.image(image_id).frame_id).rig_from_world = (
-                image.cam_from_world()
-            )
+            rec.frame(
+                rec.image(image_id).frame_id
+            ).rig_from_world = image.cam_from_world()
     rec.write(output_dir)
     return rec
 

@@ -9,7 +9,9 @@ import pycolmap
 import pytest
 
 from colmap_vc import augment, mapping
-from colmap_vc.evaluation import evaluate_reconstruction
+from colmap_vc.evaluation import evaluate_poses, evaluate_reconstruction, poses_by_name
+from colmap_vc.meshalign import mesh_alignment_poses
+from colmap_vc.priors import read_priors
 
 
 @pytest.fixture(scope="module")
@@ -74,3 +76,38 @@ def test_missing_inputs(dome_scene, tmp_path):
         mapping.run(tmp_path / "none.db", dome_scene / "images", tmp_path / "o")
     with pytest.raises(FileNotFoundError, match="image folder"):
         mapping.run(dome_scene / "database.db", tmp_path / "noimages", tmp_path / "o")
+
+
+def test_without_verified_pairs_meshes_and_keypoint_tracks_still_register(
+    dome_scene, tmp_path
+):
+    """No two-view geometry at all (every RANSAC failed): the auto mapper places the
+    cameras by mesh alignment and the keypoint BA refines them from identity tracks."""
+    db = tmp_path / "noverify.db"
+    shutil.copyfile(dome_scene / "database.db", db)
+    augment.run(db, dome_scene / "priors", augment.AugmentOptions(show_progress=False))
+    with sqlite3.connect(db) as conn:
+        conn.execute("DELETE FROM two_view_geometries")
+    rec, summary = mapping.run(
+        db,
+        dome_scene / "images",
+        tmp_path / "sparse",
+        mapping.MappingOptions(num_threads=2, show_progress=False),
+    )
+    assert summary.num_registered == 6
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    mesh_only = evaluate_poses(
+        mesh_alignment_poses(read_priors(dome_scene / "priors")), poses_by_name(gt)
+    )
+    refined = evaluate_reconstruction(rec, gt)
+    assert rec.num_points3D() > 0  # keypoint tracks, triangulated
+    # Realistic priors: the meshes are off by many degrees, the keypoint tracks fix it.
+    assert refined.median_error_deg < 0.5 * mesh_only.median_error_deg
+    # Without the keypoint BA there is nothing to build on: no model, with the reason.
+    with pytest.raises(RuntimeError, match="no model"):
+        mapping.run(
+            db,
+            dome_scene / "images",
+            tmp_path / "sparse2",
+            mapping.MappingOptions(num_threads=2, keypoint_ba=False),
+        )
