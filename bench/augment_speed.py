@@ -115,16 +115,21 @@ def main() -> None:
         [
             "| measure | value | goal |",
             "|---|---|---|",
-            f"| first hits (float64-refined) / raw Embree first hits, rays/s | **{rays['ratio_first_hits']:.2f}** "
-            f"({rays['first_hits_rays_per_s'] / 1e6:.2f} M vs {rays['raw_embree_rays_per_s'] / 1e6:.2f} M rays/s) | >= 0.7 |",
-            f"| all hits / raw Embree first hits, hits/s | {rays['ratio_all_hits_per_hit']:.2f} "
+            "| first hits (float64-refined) / raw Embree first hits, rays/s | "
+            f"**{rays['ratio_first_hits']:.2f}** "
+            f"({rays['first_hits_rays_per_s'] / 1e6:.2f} M vs "
+            f"{rays['raw_embree_rays_per_s'] / 1e6:.2f} M rays/s) | >= 0.7 |",
+            "| all hits / raw Embree first hits, hits/s | "
+            f"{rays['ratio_all_hits_per_hit']:.2f} "
             f"({rays['num_all_hits']} hits from {rays['num_rays']} rays) | |",
             f"| `augment` wall time, 16 views, 3 people | **{best['total_s']:.1f} s** "
-            f"({', '.join(f'{k} {v:.1f}' for k, v in best['timings_s'].items())}) | <= 10 s |",
+            f"({', '.join(f'{k} {v:.1f}' for k, v in best['timings_s'].items())})"
+            " | <= 10 s |",
             f"| pairs with VCs / verified | {best['pairs']} / {best['verified']} | |",
             "",
             f"Best of {args.repeats} runs at commit {machine()['commit']}, "
-            "`.venv/bin/python bench/augment_speed.py`; raw numbers in `bench/out/augment_speed.json`.",
+            "`.venv/bin/python bench/augment_speed.py`; "
+            "raw numbers in `bench/out/augment_speed.json`.",
         ]
     )
     replace_section(DOCS / "benchmark.md", "augment-speed", body)

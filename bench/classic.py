@@ -96,18 +96,22 @@ def main() -> None:
     ]
     for r in rows:
         lines.append(
-            f"| {r['preset']} | {r['seed']} | {r['num_registered']}/{r['num_images']} | "
-            f"{r['auc']['15']:.1f} | {r['auc']['30']:.1f} | {r['auc']['45']:.1f} | {r['median_error_deg']:.1f} |"
+            f"| {r['preset']} | {r['seed']} | "
+            f"{r['num_registered']}/{r['num_images']} | "
+            f"{r['auc']['15']:.1f} | {r['auc']['30']:.1f} | {r['auc']['45']:.1f} | "
+            f"{r['median_error_deg']:.1f} |"
         )
     for preset, s in summary.items():
         lines.append(
-            f"| **{preset} mean** | | {100 * s['registered_fraction']:.0f}% | {s['auc15']:.1f} | "
-            f"{s['auc30']:.1f} | {s['auc45']:.1f} | |"
+            f"| **{preset} mean** | | {100 * s['registered_fraction']:.0f}% | "
+            f"{s['auc15']:.1f} | {s['auc30']:.1f} | {s['auc45']:.1f} | |"
         )
     lines.append("")
     lines += [f"- {k}: **{'yes' if v else 'NO'}**" for k, v in checks.items()]
     lines.append(
-        f"\nMeasured at commit {machine()['commit']} by `.venv/bin/python bench/classic.py --seeds {' '.join(map(str, args.seeds))}`; raw numbers in `bench/out/classic.json`."
+        f"\nMeasured at commit {machine()['commit']} by `.venv/bin/python "
+        f"bench/classic.py --seeds {' '.join(map(str, args.seeds))}`; "
+        "raw numbers in `bench/out/classic.json`."
     )
     replace_section(DOCS / "benchmark.md", "classic", "\n".join(lines))
     print("\n".join(lines))

@@ -62,7 +62,7 @@ def replace_section(doc: Path, marker: str, body: str) -> None:
 
 
 def speed_scene() -> Path:
-    """The 16-view, 3-person dome scene of the speed benchmarks (made once, seed 100)."""
+    """The 16-view, 3-person dome of the speed benchmarks (made once, seed 100)."""
     from colmap_vc.synthetic import SynthOptions, generate
 
     scene = OUT / "scenes" / "speed_dome16"

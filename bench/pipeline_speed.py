@@ -64,9 +64,12 @@ def main() -> None:
     best = min(runs, key=lambda r: r["augment_map_s"])
     write_json("pipeline_speed.json", {"machine": machine(), "runs": runs})
     body = (
-        f"16-view, 3-person dome: augment {best['augment_s']:.1f} s + map {best['map_s']:.1f} s = "
-        f"**{best['augment_map_s']:.1f} s** (goal <= 20 s), {best['registered']}/16 registered; "
-        f"GBA afterwards {best['gba_s']:.1f} s. Best of {args.repeats} at commit {machine()['commit']}, "
+        f"16-view, 3-person dome: augment {best['augment_s']:.1f} s + "
+        f"map {best['map_s']:.1f} s = "
+        f"**{best['augment_map_s']:.1f} s** (goal <= 20 s), "
+        f"{best['registered']}/16 registered; "
+        f"GBA afterwards {best['gba_s']:.1f} s. Best of {args.repeats} "
+        f"at commit {machine()['commit']}, "
         "`.venv/bin/python bench/pipeline_speed.py`."
     )
     replace_section(

@@ -81,8 +81,9 @@ def main() -> None:
         "| stage | seconds |\n|---|---|\n"
         + "".join(f"| {k} | {v:.1f} |\n" for k, v in t.items())
         + f"\n16-view dome, {args.people} people, 640x480: **{best['total_s']:.1f} s** "
-        f"(goal: at most 60 s on 2 cores; raw Embree casting of the same 4.9 M primary rays: "
-        f"{best['embree_reference_s']:.2f} s). Measured by `.venv/bin/python bench/synth_speed.py`."
+        "(goal: at most 60 s on 2 cores; raw Embree casting of the same "
+        f"4.9 M primary rays: {best['embree_reference_s']:.2f} s). "
+        "Measured by `.venv/bin/python bench/synth_speed.py`."
     )
     replace_section(DOCS / "benchmark.md", "synth-speed", body)
     print(body)

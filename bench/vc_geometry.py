@@ -148,9 +148,7 @@ def main() -> None:
             scene = scene_dir(people, seed)
             r = evaluate(scene, scene / ("gt/priors" if level == "clean" else "priors"))
             for k in merged:
-                merged[k] = (
-                    merged[k] + r[k] if isinstance(r[k], list) else merged[k] + r[k]
-                )
+                merged[k] = merged[k] + r[k]
             logger.info(
                 "dome p%d s%d %s: %d/%d pairs verified",
                 people,
@@ -161,8 +159,10 @@ def main() -> None:
             )
         results[f"p{people}_{level}"] = merged
     lines = [
-        "| people | priors | pairs verified | VC rot. err. median / p80 (deg) | mesh alignment rot. err. median / p80 (deg) | "
-        "VC transl. dir. err. median (deg) | inlier ratio | epipolar err. of inliers under GT, median (px) |",
+        "| people | priors | pairs verified | VC rot. err. median / p80 (deg) | "
+        "mesh alignment rot. err. median / p80 (deg) | "
+        "VC transl. dir. err. median (deg) | inlier ratio | "
+        "epipolar err. of inliers under GT, median (px) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     summary = {}
@@ -190,14 +190,18 @@ def main() -> None:
             "epipolar_inlier_median_px": epi,
         }
         lines.append(
-            f"| {people[1:]} | {level} | {ver}/{len(pairs)} | {vc[0]:.2f} / {vc[1]:.2f} | "
+            f"| {people[1:]} | {level} | {ver}/{len(pairs)} | "
+            f"{vc[0]:.2f} / {vc[1]:.2f} | "
             f"{mesh[0]:.2f} / {mesh[1]:.2f} | {vt[0]:.2f} | {ratio:.2f} | {epi:.3f} |"
         )
     lines.append(
-        f"\nDome scenes (8-16 views), seeds {' '.join(map(str, args.seeds))}, all pairs that see a "
+        f"\nDome scenes (8-16 views), seeds {' '.join(map(str, args.seeds))}, "
+        "all pairs that see a "
         f"shared person. Measured at commit {machine()['commit']} by "
-        f"`.venv/bin/python bench/vc_geometry.py --seeds {' '.join(map(str, args.seeds))} "
-        f"--people {' '.join(map(str, args.people))}`; raw numbers in `bench/out/vc_geometry.json`."
+        "`.venv/bin/python bench/vc_geometry.py "
+        f"--seeds {' '.join(map(str, args.seeds))} "
+        f"--people {' '.join(map(str, args.people))}`; "
+        "raw numbers in `bench/out/vc_geometry.json`."
     )
     write_json(
         "vc_geometry.json",

@@ -169,7 +169,7 @@ def _assignments(n1: int, n2: int) -> list[list[tuple[int, int]]]:
 
 
 def _concat(matches: list[tuple[int, int, PersonMatches]]) -> tuple[IndexArray, ...]:
-    """(person 1, row 1, person 2, row 2, kind, track) of concatenated person matches."""
+    """(person 1, row 1, person 2, row 2, kind, track) of the concatenated matches."""
     if not matches:
         z = np.zeros(0, np.int64)
         return z, z, z, z, z, z
@@ -568,7 +568,8 @@ def run(
         write=write,
     )
     logger.info(
-        "augment%s: %d/%d images with priors, %d pairs with VCs, %d verified, %d VCs (%d inliers)",
+        "augment%s: %d/%d images with priors, %d pairs with VCs, %d verified, "
+        "%d VCs (%d inliers)",
         " (dry run)" if options.dry_run else "",
         summary.num_images_with_priors,
         summary.num_images,

@@ -11,7 +11,7 @@ import json
 import logging
 import sys
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import tyro
@@ -63,7 +63,7 @@ class Eval:
     """Relative pose errors and AUC@15/30/45 of a COLMAP model against ground truth."""
 
     pred_model: tyro.conf.Positional[Path]
-    """Predicted COLMAP model folder (or a folder of models 0/, 1/, ...: the largest)."""
+    """Predicted COLMAP model folder (or folder of models 0/, 1/, ...: the largest)."""
     gt_model: tyro.conf.Positional[Path]
     """Ground-truth COLMAP model folder."""
     output: Path | None = None
@@ -76,7 +76,7 @@ class Eval:
 
 @dataclass(frozen=True)
 class Priors:
-    """Estimate human priors from photos with the bundled offline estimator (MediaPipe)."""
+    """Human priors from photos, with the bundled offline estimator (MediaPipe)."""
 
     images: tyro.conf.Positional[Path]
     """Image folder."""
@@ -106,7 +106,9 @@ class Augment:
     """Priors folder (or its priors.json), format v1 (docs/priors.md)."""
     image_path: Path | None = None
     """Image folder (accepted for symmetry with COLMAP; VCs need no pixels)."""
-    options: tyro.conf.OmitArgPrefixes[AugmentOptions] = AugmentOptions()
+    options: tyro.conf.OmitArgPrefixes[AugmentOptions] = field(
+        default_factory=AugmentOptions
+    )
     verbose: bool = False
     """Debug logging."""
 
@@ -124,7 +126,9 @@ class Map:
     priors: Path | None = None
     """Priors (default: those `augment` recorded); the auto mapper checks its model
     against the meshes and the mesh mapper starts from them."""
-    options: tyro.conf.OmitArgPrefixes[MappingOptions] = MappingOptions()
+    options: tyro.conf.OmitArgPrefixes[MappingOptions] = field(
+        default_factory=MappingOptions
+    )
     gba: bool = False
     """Also run the generalized bundle adjustment with the VC tuples (into refined/).
     Off by default: after the keypoint BA it made every synthetic dome scene worse
@@ -137,7 +141,7 @@ class Map:
 
 @dataclass(frozen=True)
 class Strip:
-    """Remove colmap-vc's VCs: the database becomes exactly what it was before augment."""
+    """Remove colmap-vc's VCs: the database becomes what it was before augment."""
 
     database: tyro.conf.Positional[Path]
     """COLMAP database."""
@@ -147,7 +151,8 @@ class Strip:
 
 @dataclass(frozen=True)
 class Report:
-    """A self-contained HTML report: VCs per pair colored by epipolar error, cameras, error curve."""
+    """A self-contained HTML report: VCs per pair colored by epipolar error, cameras,
+    error curve."""
 
     database: tyro.conf.Positional[Path]
     """COLMAP database (augmented or plain)."""
@@ -276,7 +281,8 @@ def _run_priors(cmd: Priors) -> int:
         ),
     )
     sys.stdout.write(
-        f"{summary.num_persons} people in {summary.num_images_with_people}/{summary.num_images} "
+        f"{summary.num_persons} people in "
+        f"{summary.num_images_with_people}/{summary.num_images} "
         f"images -> {summary.priors_path} ({summary.seconds:.0f} s)\n"
     )
     for name, reason in summary.skipped.items():
@@ -290,14 +296,17 @@ def _run_augment(cmd: Augment) -> int:
     options = cmd.options
     summary = run(cmd.database, cmd.priors, options)
     lines = [
-        "| image 1 | image 2 | people | VCs | inliers | ratio | co-visible | virtual | keypoint | classic inliers |",
+        "| image 1 | image 2 | people | VCs | inliers | ratio | co-visible | virtual | "
+        "keypoint | classic inliers |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for p in summary.pairs:
         k = p.num_by_kind
         lines.append(
-            f"| {p.image_name1} | {p.image_name2} | {p.association_method} {p.association} | {p.num_vcs} | "
-            f"{p.num_inliers} | {p.inlier_ratio:.2f} | {k.get('covisible', 0)} | {k.get('virtual', 0)} | "
+            f"| {p.image_name1} | {p.image_name2} | "
+            f"{p.association_method} {p.association} | {p.num_vcs} | "
+            f"{p.num_inliers} | {p.inlier_ratio:.2f} | "
+            f"{k.get('covisible', 0)} | {k.get('virtual', 0)} | "
             f"{k.get('keypoint', 0)} | {p.num_classic_inliers}/{p.num_classic} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")

@@ -334,7 +334,7 @@ def two_view_initialised(
 
 
 def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> float:
-    """Median rotation difference (deg) between a model's and the meshes' relative poses."""
+    """Median rotation difference (deg) of a model's and the meshes' relative poses."""
     names = {im.name for im in rec.images.values() if im.has_pose}
     mesh = mesh_alignment_poses(priors, image_names=names)
     model = {
@@ -379,13 +379,14 @@ def _why_unregistered(
         with_registered = [p for p in pairs if (set(p) - {image_id}) & reg_ids]
         if not pairs:
             reasons[name] = (
-                "no verified image pair: no classic matches survived verification and no "
-                "virtual correspondences (no priors, or no person shared with other images)"
+                "no verified image pair: no classic matches survived verification "
+                "and no virtual correspondences (no priors, or no person shared "
+                "with other images)"
             )
         elif not with_registered:
             reasons[name] = (
-                f"{len(pairs)} verified pair(s), none with a registered image (a separate "
-                "component of the scene graph)"
+                f"{len(pairs)} verified pair(s), none with a registered image "
+                "(a separate component of the scene graph)"
             )
         else:
             reasons[name] = (

@@ -15,7 +15,7 @@ from .structs import FloatArray, ImagePrior, PersonPrior, ScenePriors
 
 
 def procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
-    """Rigid transform (3, 4) [R | t] minimising ||R src + t - dst|| (Kabsch, no scale)."""
+    """Kabsch: the rigid (3, 4) [R | t] minimising ||R src + t - dst|| (no scale)."""
     mu_s, mu_d = src.mean(axis=0), dst.mean(axis=0)
     U, _, Vt = np.linalg.svd((dst - mu_d).T @ (src - mu_s))
     D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])

@@ -105,10 +105,14 @@ class MeshScene:
         det = g11 * g22 - g12 * g12
         inv = np.where(np.abs(det) > 1e-30, 1.0 / np.where(det == 0, 1.0, det), 0.0)
         object.__setattr__(
-            self, "proj_u", (g22 * inv)[:, None] * self.e1 - (g12 * inv)[:, None] * self.e2
+            self,
+            "proj_u",
+            (g22 * inv)[:, None] * self.e1 - (g12 * inv)[:, None] * self.e2,
         )
         object.__setattr__(
-            self, "proj_v", (g11 * inv)[:, None] * self.e2 - (g12 * inv)[:, None] * self.e1
+            self,
+            "proj_v",
+            (g11 * inv)[:, None] * self.e2 - (g12 * inv)[:, None] * self.e1,
         )
 
 
@@ -188,8 +192,8 @@ def _cast_once(
     """First hit of every ray -> (geom_idx, face_idx, t, bary); -1 / inf on a miss.
 
     Embree finds the face in float32; depth and barycentrics are then recomputed in
-    float64 against that face's plane (precomputed normals and barycentric projectors), so hit
-    points lie on the mesh and on the ray to ~1e-12 m.
+    float64 against that face's plane (precomputed normals and barycentric
+    projectors), so hit points lie on the mesh and on the ray to ~1e-12 m.
     """
     if scene.uses_embree:
         # Embree wants contiguous float32; skip the copy when the caller has one.

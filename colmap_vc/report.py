@@ -487,7 +487,7 @@ def _error_curve(curves: Mapping[str, FloatArray]) -> str:
 
 
 def error_curve_figure(curves: Mapping[str, FloatArray]) -> Figure:
-    """Cumulative pose-error curves: per method, the fraction of pairs below each error."""
+    """Cumulative pose-error curves: per method, the share of pairs below each error."""
     fig = _new_figure(6.4, 4.6)
     ax = fig.add_subplot()
     grid = np.linspace(0.0, 180.0, 721)

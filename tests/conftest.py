@@ -1,4 +1,4 @@
-"""Shared fixtures: seeded rng and small synthetic scenes built by colmap_vc.synthetic."""
+"""Shared fixtures: a seeded rng and small synthetic scenes from colmap_vc.synthetic."""
 
 from __future__ import annotations
 
@@ -15,7 +15,7 @@ def rng() -> np.random.Generator:
 
 @pytest.fixture(scope="session")
 def dome_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 6-view dome around two people: images, GT, clean + realistic priors, database."""
+    """A 6-view dome around two people: images, GT, clean/realistic priors, database."""
     from colmap_vc.synthetic import SynthOptions, generate
 
     out = tmp_path_factory.mktemp("dome") / "scene"

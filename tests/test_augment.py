@@ -189,7 +189,7 @@ def test_priors_for_unknown_images_fail_and_leave_the_database(dome_scene, tmp_p
         tmp_path / "priors",
         templates={"anny": next(iter(priors.images.values())).persons[0].faces},
     )
-    with pytest.raises(PriorsError, match="ghost.jpg"):
+    with pytest.raises(PriorsError, match=r"ghost.jpg"):
         augment.run(
             db, tmp_path / "priors", augment.AugmentOptions(show_progress=False)
         )
@@ -220,7 +220,7 @@ def test_images_without_priors_are_skipped_with_a_reason(dome_scene, tmp_path, c
 def test_not_a_database_and_no_keypoints(tmp_path, dome_scene):
     junk = tmp_path / "junk.db"
     junk.write_bytes(b"not sqlite at all" * 100)
-    with pytest.raises(ValueError, match="junk.db"):
+    with pytest.raises(ValueError, match=r"junk.db"):
         augment.run(junk, dome_scene / "priors")
     assert junk.read_bytes() == b"not sqlite at all" * 100
     empty = tmp_path / "empty.db"

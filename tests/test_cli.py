@@ -1,4 +1,4 @@
-"""The command line: every subcommand answers --help, runs, and fails with exit codes."""
+"""The command line: every subcommand answers --help, runs, fails with exit codes."""
 
 from __future__ import annotations
 

@@ -45,7 +45,7 @@ def test_a_plain_database_maps_as_plain_colmap_and_says_why(dome_scene, tmp_path
     db = tmp_path / "plain.db"
     shutil.copyfile(dome_scene / "database.db", db)
     try:
-        rec, summary = mapping.run(db, dome_scene / "images", tmp_path / "sparse")
+        _rec, summary = mapping.run(db, dome_scene / "images", tmp_path / "sparse")
     except RuntimeError as exc:  # classic matching fails on the dome: say why
         assert "no model" in str(exc) and "cam0" in str(exc)
     else:

@@ -85,7 +85,7 @@ def test_misses_return_empty_arrays(sphere_and_box):
     assert len(hits) == 0
     assert hits.bary.shape == (0, 3) and hits.bary.dtype == np.float64
     assert hits.face_idx.dtype == np.int64 and hits.depth.shape == (0,)
-    geom, face, depth, bary = raycast.first_hits(scene, origins, dirs)
+    geom, face, depth, _bary = raycast.first_hits(scene, origins, dirs)
     assert face[0] == -1 and geom[0] == -1 and np.isinf(depth[0])
     empty = raycast.all_hits(scene, np.zeros((0, 3)), np.zeros((0, 3)))
     assert len(empty) == 0 and empty.bary.shape == (0, 3)

@@ -1,4 +1,4 @@
-"""The synthetic world: ground truth is self-consistent, deterministic and as specified."""
+"""The synthetic world: ground truth is self-consistent, deterministic, as specified."""
 
 from __future__ import annotations
 

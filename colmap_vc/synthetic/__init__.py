@@ -1,4 +1,4 @@
-"""The synthetic world: deterministic scenes with people, ground truth and noisy priors."""
+"""The synthetic world: deterministic scenes with people, ground truth, noisy priors."""
 
 from .generate import SynthOptions, SynthSummary, generate, gt_reconstruction
 from .layout import Preset

@@ -378,7 +378,8 @@ def generate(
         timings_s=timings,
     )
     logger.info(
-        "synth %s: %d images, %d people, %.1f s (render %.1f s, priors %.1f s, database %.1f s)",
+        "synth %s: %d images, %d people, %.1f s "
+        "(render %.1f s, priors %.1f s, database %.1f s)",
         preset.value,
         summary.num_images,
         summary.num_people,

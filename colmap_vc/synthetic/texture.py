@@ -104,7 +104,7 @@ def disk_field(
 
 
 def palette(value: FloatArray, colours: FloatArray) -> FloatArray:
-    """Map values in [0, 1] to RGB (N, 3) by linear interpolation of ``colours`` (K, 3)."""
+    """Map values in [0, 1] to RGB (N, 3), linearly interpolating ``colours`` (K, 3)."""
     x = np.clip(value, 0.0, 1.0) * (len(colours) - 1)
     i = np.minimum(np.floor(x).astype(np.int64), len(colours) - 2)
     t = (x - i)[:, None]
@@ -127,7 +127,7 @@ _ROOM_COLOURS = np.array(
 def room_surface(
     seed: TextureSeed, points: FloatArray, normals: FloatArray
 ) -> FloatArray:
-    """A richly textured room: wood-like floor, walls with posters of blobs. (N, 3) RGB."""
+    """A richly textured room: wood-like floor, walls with blob posters. (N, 3) RGB."""
     n = np.abs(normals)
     is_floor = n[:, 2] > 0.5
     # Planar coordinates of each wall or floor point (drop the normal's axis).
