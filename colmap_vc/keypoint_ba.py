@@ -8,9 +8,9 @@ keeps a selection skewed by them. This pass rebuilds the model's keypoint points
 identities (people linked across images by ``augment``'s person associations),
 triangulates them with the model's poses and runs COLMAP's bundle adjustment with a
 Cauchy loss scaled to the keypoints' pixel error, keeping classic (SIFT) points and a
-budget of the surface-VC points (``surface_per_image`` observations per image:
-dense maps rendered from a mesh fitted to the same landmarks add correlated errors,
-docs/real-data.md).
+budget of the surface-VC points (``surface_per_image`` observations per image, more
+for two images: dense maps rendered from a mesh fitted to the same landmarks add
+correlated errors, docs/real-data.md).
 
 On pose2sim (docs/results.md) the pass converges to the same poses from the mapper's
 model, from the keypoint-only model and from the ground truth.
@@ -47,6 +47,11 @@ class KeypointBaOptions:
     fixed strength on the poses (helps one instant, pose2sim: 41.7 -> 43.8 AUC@15),
     which more instants of keypoints should outweigh (five instants: docs/results.md).
     """
+    surface_per_image_two_view: float = 24.0
+    """The same budget for a model of two images, where one person's keypoint tracks
+    (2 observations each) barely constrain the relative pose and the surface VCs
+    condition it (synthetic two-view scenes, realistic priors: AUC@15 20.8 with 6,
+    34.5 with 24; docs/results.md)."""
     min_track_length: int = 2
     """Keypoint tracks seen by fewer registered images are left out."""
     surface_seed: int = 0
@@ -261,10 +266,15 @@ def keypoint_bundle_adjustment(
     X, counts = triangulate_tracks(out, tracks)
     good = (counts >= options.min_track_length) & np.isfinite(X).all(axis=1)
     num_kp_obs = int(counts[good].sum())
-    if options.surface_per_image >= 0 and vc_only:
+    per_image = (
+        options.surface_per_image_two_view
+        if len(registered) == 2
+        else options.surface_per_image
+    )
+    if per_image >= 0 and vc_only:
         order = np.random.default_rng(options.surface_seed).permutation(len(vc_only))
         kept_obs = np.cumsum(np.asarray(vc_obs)[order])
-        budget = options.surface_per_image * len(registered)
+        budget = per_image * len(registered)
         for k in order[kept_obs > budget]:
             dropped += vc_obs[k]
             out.delete_point3D(vc_only[k])
