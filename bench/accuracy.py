@@ -314,7 +314,13 @@ def main() -> None:
         "![error vs angle](img/error_vs_angle.png)",
         "",
     ]
-    (DOCS / "results.md").write_text("\n".join(doc))
+    # Keep the sections other benches own (the real-photo results of pose2sim.py).
+    path = DOCS / "results.md"
+    old = path.read_text() if path.exists() else ""
+    begin, end = "<!-- pose2sim:begin -->", "<!-- pose2sim:end -->"
+    if begin in old and end in old:
+        doc += ["", old[old.index(begin) : old.index(end) + len(end)], ""]
+    path.write_text("\n".join(doc))
     print("\n".join(doc))
 
 
