@@ -195,9 +195,13 @@ def keypoint_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTrack
 def triangulate_tracks(
     rec: pycolmap.Reconstruction, tracks: KeypointTracks
 ) -> tuple[FloatArray, IndexArray]:
-    """DLT point (T, 3) of each track (the model's poses) and its view count (T,)."""
+    """DLT point (T, 3) of each track (the model's poses) and its view count (T,).
+
+    A point behind any of its cameras (or at infinity) is NaN.
+    """
     num = tracks.num_tracks
     rows = np.zeros((len(tracks.track), 2, 4))
+    depth_row = np.zeros((len(tracks.track), 4))  # z of the point in its camera
     for image_id in np.unique(tracks.image_id):  # loop over images, vectorized over obs
         sel = tracks.image_id == image_id
         image = rec.image(int(image_id))
@@ -205,14 +209,21 @@ def triangulate_tracks(
         uv = np.asarray(rec.camera(image.camera_id).cam_from_img(tracks.xy_img[sel]))
         rows[sel, 0] = uv[:, :1] * T[2] - T[0]
         rows[sel, 1] = uv[:, 1:2] * T[2] - T[1]
+        depth_row[sel] = T[2]
     rows /= np.linalg.norm(rows, axis=2, keepdims=True)
     A = np.zeros((num, 4, 4))  # normal equations A^T A per track
     np.add.at(A, tracks.track, np.einsum("oki,okj->oij", rows, rows))
     _, vecs = np.linalg.eigh(A)
     X = vecs[:, :, 0]
     w = np.where(np.abs(X[:, 3]) > 1e-12, X[:, 3], np.nan)
+    X = X / w[:, None]
+    behind = np.zeros(num, dtype=bool)
+    np.logical_or.at(
+        behind, tracks.track, np.einsum("oi,oi->o", depth_row, X[tracks.track]) <= 0
+    )
+    X[behind] = np.nan
     counts = np.bincount(tracks.track, minlength=num)
-    return X[:, :3] / w[:, None], counts
+    return X[:, :3], counts
 
 
 def keypoint_bundle_adjustment(
