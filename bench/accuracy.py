@@ -61,6 +61,18 @@ METHODS = (
 )
 
 
+LEGEND = [
+    "Methods: *classic COLMAP* (SIFT, exhaustive matching, COLMAP's mapper); *mesh "
+    "alignment* (Procrustes between the predicted meshes); *VC init* (VCs only, "
+    "registration and triangulation without BA); *VC + BA* (pycolmap's mapper with "
+    "its BA); *VC + keypoint BA* (then the keypoint bundle adjustment: what "
+    "`colmap-vc map` does); *VC + GBA* (the mapper's model, then the generalized BA: "
+    "`map --no-keypoint-ba --gba`); *+ classic*: VCs verified together with the SIFT "
+    "matches.",
+    "",
+]
+
+
 def _gba_available() -> bool:
     try:
         from colmap_vc import refine  # noqa: F401
@@ -289,6 +301,7 @@ def main() -> None:
         "(docs/benchmark.md has the set-up checks and speed).",
         "",
     ]
+    doc += LEGEND
     doc.append("## Table 1 analog: methods on each dataset (realistic priors)\n")
     for group in groups:
         if group in summary and "realistic" in summary[group]:
