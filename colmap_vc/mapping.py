@@ -496,6 +496,8 @@ def run(
                     and rec.num_reg_images() >= 0.8 * num_best
                 )
             ):
+                for key in models:  # superseded: keep one answer on disk
+                    shutil.rmtree(output_dir / str(key), ignore_errors=True)
                 models, best_key, best = {"mesh": rec}, "mesh", rec
         else:
             logger.info(

@@ -95,6 +95,7 @@ def test_without_verified_pairs_meshes_and_keypoint_tracks_still_register(
         mapping.MappingOptions(num_threads=2, show_progress=False),
     )
     assert summary.num_registered == 6
+    assert sorted(p.name for p in (tmp_path / "sparse").iterdir()) == ["mesh"]
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     mesh_only = evaluate_poses(
         mesh_alignment_poses(read_priors(dome_scene / "priors")), poses_by_name(gt)
