@@ -226,6 +226,19 @@ def triangulate_tracks(
     return X[:, :3], counts
 
 
+def bundle_adjust_inplace(rec: pycolmap.Reconstruction, loss_scale_px: float) -> None:
+    """COLMAP's bundle adjustment (intrinsics fixed, Cauchy loss), in place."""
+    ba = pycolmap.BundleAdjustmentOptions(
+        refine_focal_length=False,
+        refine_principal_point=False,
+        refine_extra_params=False,
+        print_summary=False,
+    )
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.loss_function_scale = loss_scale_px
+    pycolmap.bundle_adjustment(rec, ba)
+
+
 def keypoint_bundle_adjustment(
     database_path: Path,
     rec: pycolmap.Reconstruction,
@@ -296,15 +309,7 @@ def keypoint_bundle_adjustment(
         for o in range(starts[t], ends[t]):
             track.add_element(int(tracks.image_id[o]), int(tracks.point2D_idx[o]))
         out.add_point3D(X[t], track)
-    ba = pycolmap.BundleAdjustmentOptions(
-        refine_focal_length=False,
-        refine_principal_point=False,
-        refine_extra_params=False,
-        print_summary=False,
-    )
-    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    ba.ceres.loss_function_scale = options.loss_scale_px
-    pycolmap.bundle_adjustment(out, ba)
+    bundle_adjust_inplace(out, options.loss_scale_px)
     summary = KeypointBaSummary(
         num_tracks=int(good.sum()),
         num_keypoint_observations=num_kp_obs,

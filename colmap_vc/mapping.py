@@ -20,7 +20,11 @@ import pycolmap
 
 from . import database
 from .evaluation import relative_pose, rotation_angle_deg
-from .keypoint_ba import KeypointBaOptions, keypoint_bundle_adjustment
+from .keypoint_ba import (
+    KeypointBaOptions,
+    bundle_adjust_inplace,
+    keypoint_bundle_adjustment,
+)
 from .meshalign import mesh_alignment_poses
 from .priors import read_priors
 from .structs import ScenePriors
@@ -158,19 +162,6 @@ def global_options(options: MappingOptions) -> pycolmap.GlobalPipelineOptions:
     return pipeline
 
 
-def _ceres_ba(rec: pycolmap.Reconstruction, loss_scale_px: float) -> None:
-    """COLMAP's bundle adjustment (intrinsics fixed, Cauchy loss), in place."""
-    ba = pycolmap.BundleAdjustmentOptions(
-        refine_focal_length=False,
-        refine_principal_point=False,
-        refine_extra_params=False,
-        print_summary=False,
-    )
-    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    ba.ceres.loss_function_scale = loss_scale_px
-    pycolmap.bundle_adjustment(rec, ba)
-
-
 def mesh_initialised(
     database_path: Path,
     image_dir: Path,
@@ -213,7 +204,6 @@ def mesh_initialised(
     )
     pipeline.triangulation.create_max_angle_error = 10.0
     output_dir.mkdir(parents=True, exist_ok=True)
-    posed = pycolmap.Reconstruction(rec)  # the mesh-alignment cameras alone
     for _ in range(num_rounds):
         rec = pycolmap.triangulate_points(
             rec,
@@ -225,7 +215,7 @@ def mesh_initialised(
         )
         if rec.num_points3D() < MIN_MESH_INIT_POINTS:
             break
-        _ceres_ba(rec, loss_scale_px=options.filter_max_reproj_error_px / 2)
+        bundle_adjust_inplace(rec, options.filter_max_reproj_error_px / 2)
     if rec.num_points3D() < MIN_MESH_INIT_POINTS:
         if not options.keypoint_ba:
             return None
@@ -238,10 +228,11 @@ def mesh_initialised(
         )
         for point_id in list(rec.point3D_ids()):
             rec.delete_point3D(point_id)
-        for image_id, image in posed.images.items():  # rec keeps its points2D
-            rec.frame(
-                rec.image(image_id).frame_id
-            ).rig_from_world = image.cam_from_world()
+        for image in rec.images.values():  # back to the meshes' cameras
+            T = poses[image.name]
+            rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
+                pycolmap.Rotation3d(T[:, :3]), T[:, 3]
+            )
     rec.write(output_dir)
     return rec
 
