@@ -19,6 +19,14 @@ import pycolmap
 from tqdm import tqdm
 
 from . import __version__, database, raycast
+from .association import (
+    AssociationOptions,
+    LinkEvidence,
+    PersonCue,
+    associate,
+    pose_disagreement_deg,
+)
+from .evaluation import rotation_angle_deg
 from .matching import (
     MatchingOptions,
     PersonMatches,
@@ -34,6 +42,7 @@ from .priors import read_priors
 from .structs import (
     FloatArray,
     HitKind,
+    ImagePrior,
     IndexArray,
     PairGeometry,
     PairVcMatches,
@@ -63,6 +72,18 @@ class AugmentOptions:
     """Pairs whose classic two-view geometry already has this many inliers get no
     VCs: SIFT is far more precise than any human prior where views overlap (0: add
     VCs to every pair)."""
+    association: AssociationOptions = field(default_factory=AssociationOptions)
+    """How anonymous people are associated across views (colmap_vc.association)."""
+    max_link_vcs: int = 400
+    """VCs per person link verified on their own when associating (an even
+    subsample: the inlier ratio needs no more)."""
+    max_classic_disagreement_deg: float = 20.0
+    """Classic matches join a pair's verification only when their own relative pose
+    agrees with the VCs' within this (else a few spurious SIFT inliers could steer
+    the pair): the VC pose noise (association.pose_sigma_deg)."""
+    max_cycle_error_deg: float = 35.0
+    """A verified pair whose rotation breaks most of the view triplets it closes by
+    more than this is dropped (sqrt(3) x the one-pair pose noise of 20 deg)."""
     dry_run: bool = False
     """Compute and report, write nothing."""
     show_progress: bool = True
@@ -83,6 +104,7 @@ class PairReport:
     association: list[tuple[int, int]]  # (person index 1, person index 2)
     association_method: str
     verified: bool
+    reason: str = ""  # why a pair with VCs has no geometry (or was dropped)
 
     @property
     def inlier_ratio(self) -> float:
@@ -143,28 +165,15 @@ def observe_image(
     camera: pycolmap.Camera,
     samples: Mapping[str, TemplateSamples],
     options: MatchingOptions,
-) -> list[PersonObservations]:
-    """Observations of every person of one image."""
+) -> tuple[ImagePrior, list[PersonObservations]]:
+    """The re-posed priors of one image and the observations of every person."""
     prior = refit_image_prior(priors.images[image_name], camera, options)
     others = None
     if len(prior.persons) > 1 and options.people_occlude:
         others = raycast.build_scene([(p.vertices_cam, p.faces) for p in prior.persons])
-    return [
+    return prior, [
         observe_person(prior, k, camera, samples[template_key(p)], options, others)
         for k, p in enumerate(prior.persons)
-    ]
-
-
-def _assignments(n1: int, n2: int) -> list[list[tuple[int, int]]]:
-    """All injective assignments of min(n1, n2) people between two images."""
-    if n1 <= n2:
-        return [
-            list(zip(range(n1), perm, strict=True))
-            for perm in itertools.permutations(range(n2), n1)
-        ]
-    return [
-        list(zip(perm, range(n2), strict=True))
-        for perm in itertools.permutations(range(n1), n2)
     ]
 
 
@@ -244,54 +253,191 @@ def _thickness(
     return sol[:, 0], sol[:, 1]
 
 
-def _associate_and_verify(
+def _link_evidence(
+    n1: str,
+    n2: str,
     obs1: list[PersonObservations],
     obs2: list[PersonObservations],
     cam1: pycolmap.Camera,
     cam2: pycolmap.Camera,
+    cache: dict[tuple[str, str, int, int], PersonMatches],
+    options: AugmentOptions,
+) -> list[LinkEvidence]:
+    """Every person link of one pair, verified on its own VCs (a subsample)."""
+    out = []
+    for a, b in itertools.product(range(len(obs1)), range(len(obs2))):
+        m = match_persons(obs1[a], obs2[b])
+        cache[(n1, n2, a, b)] = m
+        if len(m) < options.min_num_vcs:
+            continue
+        rows = np.arange(len(m))
+        if len(m) > options.max_link_vcs:  # evenly spread, deterministic
+            rows = np.linspace(0, len(m) - 1, options.max_link_vcs).round()
+            rows = np.unique(rows.astype(np.int64))
+        result = verify_pair(
+            cam1,
+            cam2,
+            obs1[a].xy_img[m.idx1[rows]],
+            obs2[b].xy_img[m.idx2[rows]],
+            options=options.verification,
+        )
+        out.append(
+            LinkEvidence(
+                image_name1=n1,
+                image_name2=n2,
+                person1=a,
+                person2=b,
+                num_vcs=len(rows),
+                num_inliers=int(result.vc_is_inlier.sum()),
+                cam2_from_cam1=None
+                if result.geometry is None
+                else result.geometry.cam2_from_cam1,
+            )
+        )
+    return out
+
+
+def _person_cues(
+    name: str, prior: ImagePrior, obs: list[PersonObservations], group: str = ""
+) -> list[PersonCue]:
+    return [
+        PersonCue(
+            image_name=name,
+            index=k,
+            person_id=p.person_id,
+            vertices_cam=p.vertices_cam,
+            appearance=p.appearance,
+            group=group,
+        )
+        for k, p in enumerate(prior.persons)
+    ]
+
+
+def _verify_with_classic(
+    cam1: pycolmap.Camera,
+    cam2: pycolmap.Camera,
+    vc_xy1: FloatArray,
+    vc_xy2: FloatArray,
     classic_xy1: FloatArray | None,
     classic_xy2: FloatArray | None,
     options: AugmentOptions,
-) -> tuple[Verification, tuple[IndexArray, ...], list[tuple[int, int]], str] | None:
-    """People association of one pair (ids, else the most consistent assignment) and
-    the verification of its VCs -> (verification, VCs, assignment, method), or None.
+) -> Verification:
+    """Verification that a few spurious classic matches cannot steer.
+
+    The VCs are verified on their own. Classic matches join only when they verify
+    on their own too *and* their relative pose agrees with the VCs' (within
+    ``max_classic_disagreement_deg``); the joint estimate is then kept if it still
+    agrees. Otherwise the pair's geometry is the VCs' alone, without classic inliers.
     """
-    cache: dict[tuple[int, int], PersonMatches] = {}
-
-    def matches_of(assignment: list[tuple[int, int]]) -> tuple[IndexArray, ...]:
-        for k1, k2 in assignment:
-            if (k1, k2) not in cache:
-                cache[(k1, k2)] = match_persons(obs1[k1], obs2[k2])
-        return _concat([(k1, k2, cache[(k1, k2)]) for k1, k2 in assignment])
-
-    def verify(cat: tuple[IndexArray, ...]) -> Verification:
-        xy1 = _gather(obs1, cat[0], cat[1], "xy_img")
-        xy2 = _gather(obs2, cat[2], cat[3], "xy_img")
-        return verify_pair(
-            cam1, cam2, xy1, xy2, classic_xy1, classic_xy2, options.verification
+    vc = verify_pair(cam1, cam2, vc_xy1, vc_xy2, options=options.verification)
+    if classic_xy1 is None or classic_xy2 is None or len(classic_xy1) == 0:
+        return vc
+    none_classic = np.zeros(len(classic_xy1), dtype=bool)
+    classic = verify_pair(
+        cam1,
+        cam2,
+        np.zeros((0, 2)),
+        np.zeros((0, 2)),
+        classic_xy1,
+        classic_xy2,
+        options.verification,
+    )
+    if vc.geometry is None:
+        return Verification(
+            geometry=None, vc_is_inlier=vc.vc_is_inlier, classic_is_inlier=none_classic
         )
+    limit = options.max_classic_disagreement_deg
+    if classic.geometry is not None and (
+        pose_disagreement_deg(
+            classic.geometry.cam2_from_cam1, vc.geometry.cam2_from_cam1
+        )
+        <= limit
+    ):
+        joint = verify_pair(
+            cam1,
+            cam2,
+            vc_xy1,
+            vc_xy2,
+            classic_xy1,
+            classic_xy2,
+            options.verification,
+        )
+        if joint.geometry is not None and (
+            pose_disagreement_deg(
+                joint.geometry.cam2_from_cam1, vc.geometry.cam2_from_cam1
+            )
+            <= limit
+        ):
+            return joint
+    return Verification(
+        geometry=vc.geometry,
+        vc_is_inlier=vc.vc_is_inlier,
+        classic_is_inlier=none_classic,
+    )
 
-    ids1 = [o.person_id for o in obs1]
-    ids2 = [o.person_id for o in obs2]
-    if all(i >= 0 for i in ids1 + ids2):
-        assignment = [
-            (a, b)
-            for a, b in itertools.product(range(len(obs1)), range(len(obs2)))
-            if ids1[a] == ids2[b]
-        ]
-        cat = matches_of(assignment)
-        if len(cat[0]) < options.min_num_vcs:
-            return None
-        return verify(cat), cat, assignment, "id"
-    best = None
-    for candidate in _assignments(len(obs1), len(obs2)):
-        cat = matches_of(candidate)
-        if len(cat[0]) < options.min_num_vcs:
-            continue
-        result = verify(cat)
-        if best is None or result.num_inliers > best[0].num_inliers:
-            best = (result, cat, candidate, "geometric")
-    return best
+
+def _inverted(result: Verification) -> Verification:
+    """The same verification seen from image 2 (cam1_from_cam2, transposed E/F)."""
+    g = result.geometry
+    if g is None:
+        return result
+    R, t = g.cam2_from_cam1[:, :3], g.cam2_from_cam1[:, 3]
+    return Verification(
+        geometry=PairGeometry(
+            config=g.config,
+            E=g.E.T.copy(),
+            F=g.F.T.copy(),
+            H=np.linalg.inv(g.H) if abs(np.linalg.det(g.H)) > 1e-12 else g.H.copy(),
+            cam2_from_cam1=np.c_[R.T, -R.T @ t],
+        ),
+        vc_is_inlier=result.vc_is_inlier,
+        classic_is_inlier=result.classic_is_inlier,
+    )
+
+
+def _cycle_inconsistent_pairs(
+    rotations: Mapping[tuple[str, str], FloatArray], max_error_deg: float
+) -> dict[tuple[str, str], str]:
+    """Pairs (name order) whose rotation breaks most of the triplets they close.
+
+    For images a < b < c with all three pairs verified, R_ac should equal R_bc R_ab.
+    The pair in the most inconsistent (and more inconsistent than consistent)
+    triplets is dropped, then the next, until none is left; when several pairs tie
+    the cycles cannot tell which one is wrong, and none is dropped.
+    """
+    pairs = dict(rotations)
+    dropped: dict[tuple[str, str], str] = {}
+    names = sorted({n for p in pairs for n in p})
+    while True:
+        bad: dict[tuple[str, str], int] = {}
+        good: dict[tuple[str, str], int] = {}
+        worst: dict[tuple[str, str], float] = {}
+        for a, b, c in itertools.combinations(names, 3):
+            if not ((a, b) in pairs and (b, c) in pairs and (a, c) in pairs):
+                continue
+            R = pairs[(b, c)] @ pairs[(a, b)] @ pairs[(a, c)].T
+            err = rotation_angle_deg(R)
+            for p in ((a, b), (b, c), (a, c)):
+                if err > max_error_deg:
+                    bad[p] = bad.get(p, 0) + 1
+                    worst[p] = max(worst.get(p, 0.0), err)
+                else:
+                    good[p] = good.get(p, 0) + 1
+        candidates = [p for p in bad if bad[p] > good.get(p, 0)]
+        if not candidates:
+            return dropped
+        most = max(bad[p] for p in candidates)
+        worst_pairs = [p for p in candidates if bad[p] == most]
+        if len(worst_pairs) > 1:
+            # Several pairs break as many cycles: the cycles cannot tell which is
+            # wrong (e.g. 4 views, every triplet broken); keep them all.
+            return dropped
+        p = worst_pairs[0]
+        dropped[p] = (
+            f"its rotation breaks {bad[p]} of {bad[p] + good.get(p, 0)} view "
+            f"triplets (cycle error up to {worst[p]:.0f} deg > {max_error_deg:g})"
+        )
+        del pairs[p]
 
 
 def compute_virtual_correspondences(
@@ -335,21 +481,105 @@ def compute_virtual_correspondences(
         n for n in views.image_names if n in priors.images and priors.images[n].persons
     ]
 
+    # Everything below runs in image-name order, never in the database's order:
+    # the same images give the same VCs whatever order COLMAP wrote them in.
+    names = sorted(names)
     t0 = time.perf_counter()
     samples = _template_samples(priors, options.matching.num_samples)
     observations: dict[str, list[PersonObservations]] = {}
+    cues: list[PersonCue] = []
     for name in tqdm(
         names, desc="observe", disable=not options.show_progress, leave=False
     ):
-        i = name_to_idx[name]
-        camera = views.cameras[int(views.camera_ids[i])]
-        observations[name] = observe_image(
+        camera = views.cameras[int(views.camera_ids[name_to_idx[name]])]
+        prior, observations[name] = observe_image(
             priors, name, camera, samples, options.matching
         )
+        cues += _person_cues(name, prior, observations[name])
     timings["observe"] = time.perf_counter() - t0
 
+    def camera_of(name: str) -> pycolmap.Camera:
+        return views.cameras[int(views.camera_ids[name_to_idx[name]])]
+
+    def id_of(name: str) -> int:
+        return int(views.image_ids[name_to_idx[name]])
+
+    def pair_ids(n1: str, n2: str) -> tuple[int, int]:
+        return (
+            (id_of(n1), id_of(n2)) if id_of(n1) < id_of(n2) else (id_of(n2), id_of(n1))
+        )
+
     t0 = time.perf_counter()
-    used: dict[str, list[IndexArray]] = {n: [] for n in names}
+    name_pairs = [
+        (n1, n2)
+        for n1, n2 in itertools.combinations(names, 2)
+        if not (solved_pairs and pair_ids(n1, n2) in solved_pairs)
+    ]
+    cache: dict[tuple[str, str, int, int], PersonMatches] = {}
+    links: list[LinkEvidence] = []
+    for n1, n2 in tqdm(
+        name_pairs, desc="person links", disable=not options.show_progress, leave=False
+    ):
+        links += _link_evidence(
+            n1,
+            n2,
+            observations[n1],
+            observations[n2],
+            camera_of(n1),
+            camera_of(n2),
+            cache,
+            options,
+        )
+    association = associate(cues, links, options.association)
+    timings["associate"] = time.perf_counter() - t0
+
+    t0 = time.perf_counter()
+    verified: dict[tuple[str, str], tuple[Verification, tuple[IndexArray, ...], int]]
+    verified = {}
+    failed: dict[tuple[str, str], tuple[tuple[IndexArray, ...], str]] = {}
+    for n1, n2 in tqdm(
+        sorted(association.links),
+        desc="verify",
+        disable=not options.show_progress,
+        leave=False,
+    ):
+        pair_links = association.links[(n1, n2)]
+        cat = _concat([(a, b, cache[(n1, n2, a, b)]) for a, b in pair_links])
+        if len(cat[0]) < options.min_num_vcs:
+            continue
+        id1, id2 = pair_ids(n1, n2)
+        cm = (
+            classic_matches.get((id1, id2), np.zeros((0, 2), np.int64))
+            if options.use_classic_matches
+            else np.zeros((0, 2), np.int64)
+        )
+        if id1 != id_of(n1):
+            cm = cm[:, ::-1]  # classic matches are stored in id order
+        cxy1 = classic_keypoints[id_of(n1)][cm[:, 0]] if len(cm) else None
+        cxy2 = classic_keypoints[id_of(n2)][cm[:, 1]] if len(cm) else None
+        result = _verify_with_classic(
+            camera_of(n1),
+            camera_of(n2),
+            _gather(observations[n1], cat[0], cat[1], "xy_img"),
+            _gather(observations[n2], cat[2], cat[3], "xy_img"),
+            cxy1,
+            cxy2,
+            options,
+        )
+        if result.geometry is None:
+            failed[(n1, n2)] = (cat, "the associated people's VCs do not verify")
+            continue
+        verified[(n1, n2)] = (result, cat, len(cm))
+    dropped = _cycle_inconsistent_pairs(
+        {p: v[0].geometry.cam2_from_cam1[:, :3] for p, v in verified.items()},  # type: ignore[union-attr]
+        options.max_cycle_error_deg,
+    )
+    for p, reason in dropped.items():
+        logger.info("pair %s / %s dropped: %s", p[0], p[1], reason)
+        failed[p] = (verified.pop(p)[1], reason)
+    timings["verify"] = time.perf_counter() - t0
+
+    # Back to the database's convention: pairs in image-id order.
     candidates: list[
         tuple[
             str,
@@ -359,38 +589,33 @@ def compute_virtual_correspondences(
             list[tuple[int, int]],
             str,
             int,
+            str,
         ]
     ] = []
-    name_pairs = list(itertools.combinations(names, 2))
-    for n1, n2 in tqdm(
-        name_pairs, desc="match+verify", disable=not options.show_progress, leave=False
-    ):
-        i1, i2 = name_to_idx[n1], name_to_idx[n2]
-        id1, id2 = int(views.image_ids[i1]), int(views.image_ids[i2])
-        if id1 > id2:
-            n1, n2, i1, i2, id1, id2 = n2, n1, i2, i1, id2, id1
-        if solved_pairs and (id1, id2) in solved_pairs:
-            continue
-        obs1, obs2 = observations[n1], observations[n2]
-        cam1 = views.cameras[int(views.camera_ids[i1])]
-        cam2 = views.cameras[int(views.camera_ids[i2])]
-        cm = (
-            classic_matches.get((id1, id2), np.zeros((0, 2), np.int64))
-            if options.use_classic_matches
-            else np.zeros((0, 2), np.int64)
+    method = association.method
+    for (n1, n2), (result, cat, num_classic) in verified.items():
+        pl = association.links[(n1, n2)]
+        if id_of(n1) > id_of(n2):
+            n1, n2, cat = n2, n1, (cat[2], cat[3], cat[0], cat[1], cat[4], cat[5])
+            result, pl = _inverted(result), [(b, a) for a, b in pl]
+        candidates.append((n1, n2, result, cat, pl, method, num_classic, ""))
+    for (n1, n2), (cat, reason) in failed.items():
+        pl = association.links.get((n1, n2), [])
+        none = Verification(
+            geometry=None,
+            vc_is_inlier=np.zeros(len(cat[0]), dtype=bool),
+            classic_is_inlier=np.zeros(0, dtype=bool),
         )
-        cxy1 = classic_keypoints[id1][cm[:, 0]] if len(cm) else None
-        cxy2 = classic_keypoints[id2][cm[:, 1]] if len(cm) else None
-        matched = _associate_and_verify(obs1, obs2, cam1, cam2, cxy1, cxy2, options)
-        if matched is None:
-            continue
-        result, cat, assignment, method = matched
-        if len(cat[0]) == 0:
-            continue
+        if id_of(n1) > id_of(n2):
+            n1, n2, cat = n2, n1, (cat[2], cat[3], cat[0], cat[1], cat[4], cat[5])
+            pl = [(b, a) for a, b in pl]
+        candidates.append((n1, n2, none, cat, pl, method, 0, reason))
+    candidates.sort(key=lambda c: pair_ids(c[0], c[1]))
+    used: dict[str, list[IndexArray]] = {n: [] for n in names}
+    for n1, n2, _, cat, *_rest in candidates:
         used[n1].append(_codes(cat[0], cat[1]))
         used[n2].append(_codes(cat[2], cat[3]))
-        candidates.append((n1, n2, result, cat, assignment, method, len(cm)))
-    timings["match_verify"] = time.perf_counter() - t0
+    timings["match_verify"] = timings["associate"] + timings["verify"]
 
     # VC keypoints per image: every observation some pair uses, grouped by person.
     t0 = time.perf_counter()
@@ -421,7 +646,7 @@ def compute_virtual_correspondences(
     classic_inliers: dict[Pair, IndexArray] = {}
     associations: list[database.PersonAssociation] = []
     reports: list[PairReport] = []
-    for n1, n2, result, cat, assignment, method, num_classic in candidates:
+    for n1, n2, result, cat, assignment, method, num_classic, reason in candidates:
         id1 = int(views.image_ids[name_to_idx[n1]])
         id2 = int(views.image_ids[name_to_idx[n2]])
         k1, r1, k2, r2, kind, _ = cat
@@ -455,7 +680,11 @@ def compute_virtual_correspondences(
         )
         if result.geometry is not None:
             geometries[(id1, id2)] = result.geometry
-            if options.use_classic_matches and num_classic:
+            if (
+                options.use_classic_matches
+                and num_classic
+                and len(result.classic_is_inlier)
+            ):
                 cm = classic_matches[(id1, id2)]
                 classic_inliers[(id1, id2)] = cm[result.classic_is_inlier]
         for a_k, b_k in assignment:
@@ -481,6 +710,7 @@ def compute_virtual_correspondences(
                 association=[(int(a_), int(b_)) for a_, b_ in assignment],
                 association_method=method,
                 verified=result.geometry is not None,
+                reason=reason,
             )
         )
     timings["assemble"] = time.perf_counter() - t0

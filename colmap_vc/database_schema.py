@@ -40,6 +40,7 @@ class AssociationMethod(enum.StrEnum):
 
     ID = "id"  # the priors share a person identity
     GEOMETRIC = "geometric"  # chosen by the geometric verification score
+    JOINT = "joint"  # solved jointly over all views (colmap_vc.association)
 
 
 # colmap-vc's own tables. COLMAP ignores tables it does not know. The backup tables

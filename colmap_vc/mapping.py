@@ -8,6 +8,7 @@ are looser than COLMAP's, while the inlier counts stay COLMAP's.
 
 from __future__ import annotations
 
+import dataclasses
 import enum
 import logging
 import shutil
@@ -24,6 +25,7 @@ from .keypoint_ba import (
     KeypointBaOptions,
     bundle_adjust_inplace,
     keypoint_bundle_adjustment,
+    person_identities,
 )
 from .meshalign import mesh_alignment_poses
 from .priors import read_priors
@@ -537,7 +539,42 @@ def _load_priors(
         if not recorded or not Path(recorded).exists():
             return None
         priors_path = Path(recorded)
-    return read_priors(priors_path, known_image_names=image_names)
+    priors = read_priors(priors_path, known_image_names=image_names)
+    return with_associated_ids(priors, database_path)
+
+
+def with_associated_ids(priors: ScenePriors, database_path: Path) -> ScenePriors:
+    """Anonymous people get the identity `augment`'s association gave them.
+
+    Mesh alignment (the auto mapper's check and the mesh-initialised mapper) pairs
+    people by identity; with anonymous multi-person priors it could pair nobody.
+    People the association left out stay anonymous.
+    """
+    associations = database.read_person_associations(database_path)
+    if not associations:
+        return priors
+    identity = person_identities(associations)
+    views = database.read_views(database_path)
+    id_of = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
+    offset = 1 + max(
+        (
+            p.person_id
+            for ip in priors.images.values()
+            for p in ip.persons
+            if p.person_id is not None
+        ),
+        default=-1,
+    )
+    images = {}
+    for name, ip in priors.images.items():
+        persons = tuple(
+            p
+            if p.person_id is not None or (id_of.get(name), k) not in identity
+            else dataclasses.replace(p, person_id=offset + identity[(id_of[name], k)])
+            for k, p in enumerate(ip.persons)
+        )
+        images[name] = dataclasses.replace(ip, persons=persons)
+    return dataclasses.replace(priors, images=images)
 
 
 def run_incremental(

@@ -36,7 +36,7 @@ FORMAT_VERSION = 1
 PRIORS_JSON = "priors.json"
 _SURFACE_FIELDS = ("surface_xy", "surface_face", "surface_bary")
 PERSON_FIELDS = {"vertices_cam", "faces", "mask", *_SURFACE_FIELDS}
-PERSON_FIELDS |= {"keypoints_xy", "keypoints_cam", "keypoints_valid"}
+PERSON_FIELDS |= {"keypoints_xy", "keypoints_cam", "keypoints_valid", "appearance"}
 # Sanity limits of a human body mesh (docs/priors.md, "Validation").
 MIN_DEPTH_M = 0.05  # at least MIN_FRONT_FRACTION of the vertices lie beyond this z
 MIN_FRONT_FRACTION = 0.95
@@ -223,6 +223,11 @@ def _parse_person(
         arr.check_inside("keypoints_xy", kp_xy, size, kp_valid)
     mask_shape = ("H", "W") if size is None else (size[1], size[0])
     mask = arr.get("mask", "b", mask_shape) if arr.has("mask") else None
+    appearance = None
+    if arr.has("appearance"):
+        appearance = arr.get("appearance", "f", ("R", 4))
+        if (appearance[:, 3] < 0).any():
+            raise arr.error("appearance", "negative region weight (column 3)")
     return PersonPrior(
         vertices_cam=verts,
         faces=faces,
@@ -231,6 +236,7 @@ def _parse_person(
         keypoints_cam=kp_cam,
         keypoints_valid=kp_valid,
         mask=mask,
+        appearance=appearance,
         **meta,
     )
 
@@ -460,6 +466,7 @@ def _person_arrays(person: PersonPrior) -> dict[str, np.ndarray]:
         "keypoints_cam": person.keypoints_cam,
         "keypoints_valid": person.keypoints_valid,
         "mask": person.mask,  # bool in a compressed npz costs ~nothing off the edges
+        "appearance": person.appearance,
     }
     dtypes = {"f": np.float32, "i": np.int32, "u": np.int32, "b": np.bool_}
     return {

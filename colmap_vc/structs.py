@@ -74,6 +74,8 @@ class PersonPrior:
     keypoints_cam: FloatArray | None = None  # (K, 3) float64, joint centres, metres
     keypoints_valid: BoolArray | None = None  # (K,) bool
     mask: BoolArray | None = None  # (H, W) bool silhouette
+    appearance: FloatArray | None = None  # (R, 4) CIELAB colour + pixel weight per
+    # body region (torso, upper arms, thighs, shins); weight 0 where unseen
 
     def __post_init__(self) -> None:
         _check_shape("vertices_cam", self.vertices_cam, (None, 3))

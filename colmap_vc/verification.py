@@ -74,6 +74,10 @@ def two_view_options(
     opts.ransac.random_seed = options.seed
     # VCs concentrate on a person: never call that a watermark.
     opts.detect_watermark = False
+    # The intrinsics are known: COLMAP's "F explains more points than E, so the
+    # cameras must be uncalibrated" test only rejects pairs whose VCs carry the
+    # priors' (large, person-correlated) errors. E with enough inliers is kept.
+    opts.min_E_F_inlier_ratio = 0.0
     return opts
 
 

@@ -116,7 +116,7 @@ def test_geometric_person_association_recovers_identities(dome_scene):
     true_ids = {n: [p.person_id for p in ip.persons] for n, ip in priors.images.items()}
     checked = 0
     for report in vcs.reports:
-        assert report.association_method == "geometric"
+        assert report.association_method == "joint"
         for k1, k2 in report.association:
             assert true_ids[report.image_name1][k1] == true_ids[report.image_name2][k2]
             checked += 1

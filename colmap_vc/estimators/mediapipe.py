@@ -38,6 +38,7 @@ from colmap_vc.estimators import (
     EstimatorOptions,
     EstimatorReport,
     PersonReport,
+    appearance,
     body,
     fit,
     prior,
@@ -239,6 +240,23 @@ def person_from_detection(
     return person, report
 
 
+def _with_appearance(
+    person: PersonPrior,
+    det: Detection,
+    image_rgb: np.ndarray,
+    options: EstimatorOptions,
+) -> PersonPrior:
+    """The person's clothing colours (estimators.appearance), for the association."""
+    lm = det.landmarks
+    h, w = image_rgb.shape[:2]
+    inside = (lm.xy_img[:, 0] >= 0) & (lm.xy_img[:, 0] < w)
+    inside &= (lm.xy_img[:, 1] >= 0) & (lm.xy_img[:, 1] < h)
+    visible = inside & (lm.visibility >= options.min_visibility)
+    mask = person.mask if person.mask is not None else det.segmentation
+    colours = appearance.describe_person(image_rgb, lm.xy_img, visible, mask)
+    return dataclasses.replace(person, appearance=colours)
+
+
 def read_image(path: Path) -> np.ndarray | None:
     """RGB uint8 pixels as stored, ignoring EXIF orientation (as COLMAP reads them)."""
     bgr = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
@@ -263,7 +281,7 @@ def estimate_image(
         person, report = person_from_detection(det, camera, options, image_name, k)
         reports.append(report)
         if person is not None:
-            persons.append(person)
+            persons.append(_with_appearance(person, det, image_rgb, options))
     reason: str | None = None
     if not reports:
         reason = "no person detected"
