@@ -116,8 +116,14 @@ def run_instant(
             raise RuntimeError(f"priors failed ({code}) for {images}")
     t0 = time.perf_counter()
     code = cli.main(
-        ["augment", str(db), "--priors", str(priors_dir), "--no-show-progress"]
-        + list(augment_args)
+        [
+            "augment",
+            str(db),
+            "--priors",
+            str(priors_dir),
+            "--no-show-progress",
+            *list(augment_args),
+        ]
     )
     if code != 0:
         raise RuntimeError(f"augment failed ({code}) for {images}")
