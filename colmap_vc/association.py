@@ -57,10 +57,11 @@ class AssociationOptions:
     """Noise of a one-person VC relative pose (max of rotation and translation-
     direction angle): median 38 deg on one-person synthetic pairs (bench/
     vc_geometry.py), so two links of one pair barely need to agree."""
-    layout_sigma_m: float = 1.0
-    """Noise of where one person's mesh alignment carries the other people, metres:
-    0.5-1.2 m for the right assignment on pose2sim_multi (meshes 10-20% off in
-    depth at 3-5 m)."""
+    layout_sigma_frac: float = 0.25
+    """Noise of where one person's mesh alignment carries the other people, as a
+    fraction of their distance from the cameras: predicted meshes are 10-20% off in
+    depth, and the error combines two meshes (0.5-1.2 m for the right assignment at
+    3-5 m on pose2sim_multi)."""
     appearance_sigma: float = 18.0
     """Noise of a body region's median CIELAB colour between two cameras (lighting,
     white balance, shading): 8-bit Lab units."""
@@ -160,10 +161,14 @@ def _unary(
     return score - 0.5 * (d_h / options.height_sigma_m) ** 2
 
 
-def _layout_error_m(
+def _layout_error(
     a1: PersonCue, b1: PersonCue, a2: PersonCue, b2: PersonCue
 ) -> float:
-    """Where a1 -> a2's mesh alignment puts b1, against b2 (and the reverse), metres."""
+    """Where a1 -> a2's mesh alignment puts b1, against b2 (and the reverse), as a
+    fraction of the people's mean distance from the cameras."""
+    depth = np.mean(
+        [np.linalg.norm(c.vertices_cam.mean(axis=0)) for c in (a1, b1, a2, b2)]
+    )
     errs = []
     for (p, q), (r, s) in (((a1, a2), (b1, b2)), ((b1, b2), (a1, a2))):
         if len(p.vertices_cam) != len(q.vertices_cam):
@@ -171,7 +176,7 @@ def _layout_error_m(
         T = procrustes(p.vertices_cam, q.vertices_cam)
         moved = T[:, :3] @ r.vertices_cam.mean(axis=0) + T[:, 3]
         errs.append(float(np.linalg.norm(moved - s.vertices_cam.mean(axis=0))))
-    return 0.5 * (errs[0] + errs[1])
+    return 0.5 * (errs[0] + errs[1]) / max(float(depth), 1e-6)
 
 
 def _pairwise(
@@ -185,14 +190,14 @@ def _pairwise(
     if l1.cam2_from_cam1 is not None and l2.cam2_from_cam1 is not None:
         d = pose_disagreement_deg(l1.cam2_from_cam1, l2.cam2_from_cam1)
         k -= 0.5 * (d / options.pose_sigma_deg) ** 2
-    e = _layout_error_m(
+    e = _layout_error(
         cues[(l1.image_name1, l1.person1)],
         cues[(l2.image_name1, l2.person1)],
         cues[(l1.image_name2, l1.person2)],
         cues[(l2.image_name2, l2.person2)],
     )
     if math.isfinite(e):
-        k -= 0.5 * (e / options.layout_sigma_m) ** 2
+        k -= 0.5 * (e / options.layout_sigma_frac) ** 2
     return k
 
 

@@ -30,7 +30,7 @@ def _cameras(n: int) -> dict[str, np.ndarray]:
     for k in range(n):
         yaw = 2 * np.pi * k / n
         R = Rotation.from_euler("y", -yaw).as_matrix()
-        centre = [*np.array([4 * np.sin(yaw), 0.0, -4 * np.cos(yaw)]), 0.6, 0, 0.15]
+        centre = np.array([4 * np.sin(yaw) + 0.6, 0.0, 0.15 - 4 * np.cos(yaw)])
         out[f"img{k}.jpg"] = np.c_[R, -R @ centre]
     return out
 
