@@ -161,9 +161,7 @@ def _unary(
     return score - 0.5 * (d_h / options.height_sigma_m) ** 2
 
 
-def _layout_error(
-    a1: PersonCue, b1: PersonCue, a2: PersonCue, b2: PersonCue
-) -> float:
+def _layout_error(a1: PersonCue, b1: PersonCue, a2: PersonCue, b2: PersonCue) -> float:
     """Where a1 -> a2's mesh alignment puts b1, against b2 (and the reverse), as a
     fraction of the people's mean distance from the cameras."""
     depth = np.mean(

@@ -57,6 +57,12 @@ class MappingOptions:
     better). incremental / global (GLOMAP) / mesh force one mapper."""
     max_prior_deviation_deg: float = 35.0
     """auto: largest median rotation difference to the mesh prior that is accepted."""
+    max_image_prior_deviation_deg: float = 90.0
+    """An image whose relative rotations to the other registered images differ from
+    the meshes' by more than this (median over its pairs) is left out: its evidence
+    contradicts its own people. The meshes' relative rotations are off by up to 77
+    deg for correctly posed cameras on pose2sim_multi (10-25 deg median), so only a
+    contradiction beyond any mesh error counts (0: no check)."""
     refine_intrinsics: bool = False
     """Refine focal length and distortion (off: the intrinsics are known)."""
     num_threads: int = -1
@@ -347,6 +353,58 @@ def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> fl
     return float(np.median(diffs)) if diffs else 0.0
 
 
+def leave_out_prior_outliers_inplace(
+    rec: pycolmap.Reconstruction, priors: ScenePriors, max_deviation_deg: float
+) -> dict[str, str]:
+    """Deregister images whose pose contradicts the meshes (image name -> why).
+
+    Per registered image: the median over its pairs (with the other registered
+    images the meshes can place) of the rotation difference between the model's
+    and the meshes' relative poses. The worst image above ``max_deviation_deg`` is
+    left out, then the next, while 3 or more remain (with 2 the images cannot tell
+    which of the two is wrong). A wrong camera is worse than none.
+    """
+    if max_deviation_deg <= 0:
+        return {}
+    model = {
+        im.name: (i, im.cam_from_world().matrix())
+        for i, im in rec.images.items()
+        if im.has_pose
+    }
+    mesh = mesh_alignment_poses(priors, image_names=set(model))
+    placed = sorted(set(mesh) & set(model))
+    left: dict[str, str] = {}
+    while len(placed) >= 3:
+        medians = {
+            a: float(
+                np.median(
+                    [
+                        rotation_angle_deg(
+                            relative_pose(model[a][1], model[b][1])[:, :3]
+                            @ relative_pose(mesh[a], mesh[b])[:, :3].T
+                        )
+                        for b in placed
+                        if b != a
+                    ]
+                )
+            )
+            for a in placed
+        }
+        logger.debug("deviation from the meshes: %s", medians)
+        worst = max(placed, key=lambda a: (medians[a], a))
+        if medians[worst] <= max_deviation_deg:
+            break
+        left[worst] = (
+            f"left out: its pose contradicts the body meshes (relative rotations "
+            f"{medians[worst]:.0f} deg from theirs, median over {len(placed) - 1} "
+            f"images; more than any mesh error, {max_deviation_deg:g} deg)"
+        )
+        logger.warning("%s %s", worst, left[worst])
+        rec.deregister_frame(rec.image(model[worst][0]).frame_id)
+        placed.remove(worst)
+    return left
+
+
 def _why_unregistered(
     database_path: Path, best: pycolmap.Reconstruction | None
 ) -> dict[str, str]:
@@ -502,9 +560,18 @@ def run(
             database_path, best, options.keypoint_ba_options
         )
         models[best_key] = best
+    left_out: dict[str, str] = {}
+    if best is not None and priors is not None:
+        # On the final poses: the keypoint BA can carry a camera far from its start.
+        left_out = leave_out_prior_outliers_inplace(
+            best, priors, options.max_image_prior_deviation_deg
+        )
+        if left_out:
+            bundle_adjust_inplace(best, options.keypoint_ba_options.loss_scale_px)
+    if best is not None and (options.keypoint_ba or left_out):
         best.write(output_dir / str(best_key))
     elapsed = time.perf_counter() - t0
-    reasons = _why_unregistered(database_path, best)
+    reasons = {**_why_unregistered(database_path, best), **left_out}
     if best is None:
         why = "; ".join(f"{n}: {r}" for n, r in list(reasons.items())[:5])
         raise RuntimeError(

@@ -112,3 +112,26 @@ def test_without_verified_pairs_meshes_and_keypoint_tracks_still_register(
             tmp_path / "sparse2",
             mapping.MappingOptions(num_threads=2, keypoint_ba=False),
         )
+
+
+def test_a_camera_that_contradicts_the_meshes_is_left_out(dome_scene):
+    """Flip one camera of the ground truth: only it leaves, with the reason."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    priors = read_priors(dome_scene / "priors")  # realistic meshes
+    assert mapping.leave_out_prior_outliers_inplace(rec, priors, 90.0) == {}
+    image = sorted(rec.images.values(), key=lambda im: im.name)[2]
+    T = image.cam_from_world().matrix()
+    flip = Rotation.from_euler("y", 150, degrees=True).as_matrix()
+    rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(flip @ T[:, :3]), flip @ T[:, 3]
+    )
+    left = mapping.leave_out_prior_outliers_inplace(rec, priors, 90.0)
+    assert (
+        list(left) == [image.name] and "contradicts the body meshes" in left[image.name]
+    )
+    assert not rec.image(image.image_id).has_pose
+    assert rec.num_reg_images() == len(rec.images) - 1
+    assert np.isfinite(T).all()
