@@ -797,6 +797,51 @@ def _pairs_section(ctx: _Context) -> str:
     return "".join(parts)
 
 
+def _people_section(ctx: _Context) -> str:
+    """Each image's VC keypoints coloured by their person's identity."""
+    from colmap_vc import report_people
+
+    associations = database.read_person_associations(ctx.inputs.database_path)
+    parts = [
+        '<section id="people"><h2>People</h2>',
+        '<p class="sub">VC keypoints coloured by the identity the association '
+        "gave their person: the same colour is the same person in every view; grey "
+        "marks a person left out (no confident partner in any other view).</p>",
+    ]
+    if not ctx.vc_keypoints:
+        parts.append(_missing("No virtual correspondences: no people to show."))
+        parts.append("</section>")
+        return "".join(parts)
+    parts.append('<div class="pairs">')
+    for image_id in sorted(ctx.vc_keypoints, key=lambda i: ctx.names[i]):
+        kp = ctx.vc_keypoints[image_id]
+        identity = report_people.keypoint_identities(
+            associations, image_id, kp.person_id
+        )
+        panel = report_people.draw_people(
+            _read_image(ctx, image_id),
+            kp.xy_img,
+            identity,
+            ctx.inputs.panel_height_px,
+        )
+        who = ", ".join(
+            f"person {p} = identity {i}" if i >= 0 else f"person {p} left out"
+            for p, i in sorted(
+                {
+                    int(p): int(i) for p, i in zip(kp.person_id, identity, strict=True)
+                }.items()
+            )
+        )
+        parts.append(
+            f'<figure class="person" data-image="{image_id}">'
+            f'<img alt="people in {_esc(ctx.names[image_id])}" '
+            f'src="{_jpeg_uri(panel)}"><figcaption><b>{_esc(ctx.names[image_id])}'
+            f"</b>: {_esc(who)}</figcaption></figure>"
+        )
+    parts.append("</div></section>")
+    return "".join(parts)
+
+
 def _summary_section(ctx: _Context, extra_metrics: Mapping[str, Any]) -> str:
     views, inputs = ctx.views, ctx.inputs
     vcs = list(ctx.vc_pairs.values())
@@ -984,9 +1029,15 @@ def build_report(inputs: ReportInputs, out_path: Path) -> Path:
         )
     ctx = _read(inputs)
     poses, extra_metrics = _poses_section(ctx)
-    sections = [_summary_section(ctx, extra_metrics), poses, _pairs_section(ctx)]
+    sections = [
+        _summary_section(ctx, extra_metrics),
+        poses,
+        _pairs_section(ctx),
+        _people_section(ctx),
+    ]
     nav = "".join(
-        f'<a href="#{s}">{s}</a>' for s in ("summary", "poses", "errors", "pairs")
+        f'<a href="#{s}">{s}</a>'
+        for s in ("summary", "poses", "errors", "pairs", "people")
     )
     page = (
         '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'

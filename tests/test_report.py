@@ -431,4 +431,26 @@ def test_report_survives_pycolmap_imported_first(run: Run, tmp_path: Path) -> No
     )
     page = out.read_text(encoding="utf-8")
     assert "this model (vs GT)" in page  # no metrics given: the model is evaluated
-    assert len(_images(page)) == 2 + 5  # pairs + poses, 3 views, curve
+    # pairs + poses, 3 views, curve + the people in each of the 6 images
+    assert len(_images(page)) == 2 + 5 + 6
+
+
+def test_people_section_colours_each_identity_alike_in_every_view(
+    full_report: Path,
+) -> None:
+    """One panel per image; a person's dots share one colour in every view."""
+    from colmap_vc.report_people import PALETTE
+
+    page = full_report.read_text(encoding="utf-8")
+    assert 'id="people"' in page
+    people = {k: v for k, v in _images(page).items() if k.startswith("people in ")}
+    assert len(people) == 6
+    captions = re.findall(
+        r'<figure class="person".*?<figcaption>(.*?)</figcaption>', page
+    )
+    identities = {int(i) for c in captions for i in re.findall(r"identity (\d+)", c)}
+    assert identities == {0, 1}  # the dome's two people, linked in every view
+    for panel in people.values():
+        for i in identities:  # both identity colours are drawn in each view
+            near = np.abs(panel.astype(int) - PALETTE[i].astype(int)).max(-1) < 40
+            assert near.sum() > 30
