@@ -40,7 +40,7 @@ BODY_LANDMARKS: tuple[str, ...] = tuple(
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class DetectionModel:
-    """Parameters of the detection-failure model (probabilities per person and image)."""
+    """Parameters of the detection-failure model (probabilities per person, image)."""
 
     min_landmarks_inside: int
     """A person is reported only with at least this many of the 12 body landmarks

@@ -40,8 +40,13 @@ from .detection import (
     landmark_visibility,
     miss_reason,
 )
-from .gt import FALSE_DETECTION, FALSE_ID_BASE, GtPersons, write_gt_persons
-from .gt import gt_persons_path
+from .gt import (
+    FALSE_DETECTION,
+    FALSE_ID_BASE,
+    GtPersons,
+    gt_persons_path,
+    write_gt_persons,
+)
 from .layout import CameraSpec, LayoutOptions, Preset, SceneLayout, make_layout
 from .noise import NOISE_LEVELS, NoiseLevel, PersonView, predict_person
 from .render import FIRST_PERSON, RenderedView, build_world, render_view

@@ -150,7 +150,9 @@ class AssociationScore:
 
     @property
     def precision(self) -> float:
-        return self.correct_links / self.predicted_links if self.predicted_links else 1.0
+        if not self.predicted_links:
+            return 1.0
+        return self.correct_links / self.predicted_links
 
     @property
     def recall(self) -> float:

@@ -283,11 +283,10 @@ def make_layout(
             )
         )
     if options.bystander:
-        people = people + (
-            _place_bystander(
-                len(people), centroid, azimuth, num_phenotypes, num_poses, rng
-            ),
+        bystander = _place_bystander(
+            len(people), centroid, azimuth, num_phenotypes, num_poses, rng
         )
+        people = (*people, bystander)
     return SceneLayout(
         preset=preset, backdrop=backdrop, cameras=tuple(cameras), people=people
     )
