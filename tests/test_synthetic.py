@@ -456,3 +456,26 @@ def test_dress_alike_shares_the_clothes():
     np.testing.assert_array_equal(alike[1].trousers, alike[0].trousers)
     assert alike[1].pattern == alike[0].pattern
     np.testing.assert_array_equal(alike[1].skin, distinct[1].skin)
+
+
+def test_cli_flags_reach_the_generator(tmp_path):
+    from colmap_vc.cli import main
+
+    common = ["--cameras", "2", "--people", "2", "--width", "160", "--height", "120"]
+    common += ["--no-database", "--close-pair", "--bystander", "--dress-alike"]
+    for name, extra in (("anon", []), ("ids", ["--with-ids"])):
+        assert main(["synth", "dome", str(tmp_path / name), *common, *extra]) == 0
+    spec = json.loads((tmp_path / "ids" / "scene.json").read_text())
+    opts = spec["options"]
+    assert opts["with_ids"] and opts["close_pair"] and opts["bystander"]
+    assert opts["dress_alike"] and spec["people"][-1]["bystander"]
+    anon = read_priors(tmp_path / "anon" / "priors")
+    ids = read_priors(tmp_path / "ids" / "priors")
+    assert all(p.person_id is None for im in anon.images.values() for p in im.persons)
+    who = read_gt_persons(gt_persons_path(tmp_path / "ids"))
+    for name, prior in ids.images.items():
+        got = [p.person_id for p in prior.persons]
+        want = who.images[name]
+        assert [g for g, w in zip(got, want, strict=True) if w >= 0] == [
+            w for w in want if w >= 0
+        ]
