@@ -284,8 +284,8 @@ def detection_line(stats: list[dict]) -> str:
     return (
         f"Priors: {reported} of {visible} visible people reported "
         f"({100 * reported / max(visible, 1):.0f}%), "
-        f"{sum(s['false'] for s in stats)} false detections, a bystander reported "
-        f"in {sum(s['bystander_views'] for s in stats)} images."
+        f"{sum(s['false'] for s in stats)} false detection(s), a bystander reported "
+        f"in {sum(s['bystander_views'] for s in stats)} image(s)."
     )
 
 
