@@ -52,6 +52,15 @@ class Synth:
     """SIFT features per image."""
     no_database: bool = False
     """Skip SIFT extraction and matching."""
+    with_ids: bool = False
+    """Give the predicted priors each person's true id (default: anonymous, as a
+    detector's output; the true ids are in gt/persons.json)."""
+    close_pair: bool = False
+    """The first two people stand 0.5-0.8 m apart and overlap in some views."""
+    bystander: bool = False
+    """Add a bystander 3-5 m from the group, seen by a few cameras only."""
+    dress_alike: bool = False
+    """The second person wears the first one's clothes."""
     overwrite: bool = False
     """Replace a non-empty OUT_DIR."""
     verbose: bool = False
@@ -232,6 +241,10 @@ def _run_synth(cmd: Synth) -> int:
             max_num_features=cmd.max_features,
             make_database=not cmd.no_database,
             overwrite=cmd.overwrite,
+            with_ids=cmd.with_ids,
+            close_pair=cmd.close_pair,
+            bystander=cmd.bystander,
+            dress_alike=cmd.dress_alike,
         ),
     )
     logger.info(

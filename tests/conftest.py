@@ -15,7 +15,11 @@ def rng() -> np.random.Generator:
 
 @pytest.fixture(scope="session")
 def dome_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
-    """A 6-view dome around two people: images, GT, clean/realistic priors, database."""
+    """A 6-view dome around two people: images, GT, clean/realistic priors, database.
+
+    The predicted priors carry the true ids (``with_ids``): the tests that use them
+    check VCs, verification and mapping, not the association of anonymous people.
+    """
     from colmap_vc.synthetic import SynthOptions, generate
 
     out = tmp_path_factory.mktemp("dome") / "scene"
@@ -23,7 +27,12 @@ def dome_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
         "dome",
         out,
         SynthOptions(
-            seed=7, num_cameras=6, num_people=2, noise="realistic", num_threads=2
+            seed=7,
+            num_cameras=6,
+            num_people=2,
+            noise="realistic",
+            num_threads=2,
+            with_ids=True,
         ),
     )
     return out

@@ -15,6 +15,14 @@ from colmap_vc import raycast
 from colmap_vc.evaluation import rotation_angle_deg
 from colmap_vc.priors import read_priors
 from colmap_vc.synthetic import SynthOptions, generate
+from colmap_vc.synthetic.gt import (
+    FALSE_DETECTION,
+    FALSE_ID_BASE,
+    association_score,
+    gt_persons_path,
+    read_gt_persons,
+    true_ids_priors,
+)
 from colmap_vc.synthetic.layout import (
     LayoutOptions,
     Preset,
@@ -88,13 +96,16 @@ def test_gt_priors_agree_across_cameras_through_the_gt_poses(dome_scene):
 def test_predicted_priors_follow_the_noise_model(dome_scene):
     gt = read_priors(dome_scene / "gt" / "priors")
     pred = read_priors(dome_scene / "priors")
+    who = read_gt_persons(gt_persons_path(dome_scene))
     rotations, joint_px = [], []
     rec = _gt(dome_scene)
     cams = {im.name: im.camera for im in rec.images.values()}
     for name, image_prior in pred.images.items():
         truth = {p.person_id: p for p in gt.images[name].persons}
-        for p in image_prior.persons:
-            t = truth[p.person_id]
+        for p, true_id in zip(image_prior.persons, who.images[name], strict=True):
+            if true_id == FALSE_DETECTION:
+                continue
+            t = truth[true_id]
             # Kabsch rotation between the centred meshes: the global orientation error
             # (plus some articulation and shape error).
             A = p.vertices_cam - p.vertices_cam.mean(0)
@@ -237,3 +248,234 @@ def test_bad_options_are_rejected():
         )
     with pytest.raises(ValueError):
         Preset("cathedral")
+
+
+# --- Detection failures, anonymity and the identity ground truth ---------------------
+
+CROWD = dict(
+    seed=1,
+    num_people=3,
+    num_cameras=8,
+    noise="hard",
+    extra_noise=("clean",),
+    bystander=True,
+    close_pair=True,
+    dress_alike=True,
+    make_database=False,
+)
+
+
+@pytest.fixture(scope="module")
+def crowd(tmp_path_factory) -> tuple[Path, Path]:
+    """The same 3-person dome (+ bystander, close pair, dressed alike, hard detection
+    failures) written anonymous and with ids."""
+    root = tmp_path_factory.mktemp("crowd")
+    anon = generate("dome", root / "anon", SynthOptions(**CROWD)).out_dir
+    ids = generate("dome", root / "ids", SynthOptions(with_ids=True, **CROWD)).out_dir
+    return anon, ids
+
+
+def _pixel_owner(scene: Path, name: str) -> dict[tuple[int, int], int]:
+    data = np.load(scene / "gt" / "surface" / (Path(name).stem + ".npz"))
+    px = np.floor(data["xy"]).astype(int)
+    return dict(zip(map(tuple, px), data["person_id"].tolist(), strict=True))
+
+
+def test_predicted_priors_are_anonymous_by_default(crowd):
+    anon, _ = crowd
+    for folder in ("priors", "priors_clean"):
+        priors = read_priors(anon / folder)
+        persons = [p for im in priors.images.values() for p in im.persons]
+        assert persons and all(p.person_id is None for p in persons), folder
+    # The ground-truth priors keep their ids.
+    gt = read_priors(anon / "gt" / "priors")
+    assert all(p.person_id is not None for im in gt.images.values() for p in im.persons)
+
+
+def test_gt_persons_maps_every_prior_person_to_its_true_id(crowd):
+    anon, _ = crowd
+    priors = read_priors(anon / "priors")
+    who = read_gt_persons(gt_persons_path(anon, "priors"))
+    assert who.priors == "priors" and set(who.images) == set(priors.images)
+    checked = 0
+    for name, prior in priors.images.items():
+        owner = _pixel_owner(anon, name)
+        assert who.visible[name] == sorted(set(owner.values()))
+        reported = [i for i in who.images[name] if i != FALSE_DETECTION]
+        # Every visible person is either reported (once) or dropped with a reason.
+        assert sorted(reported + list(who.dropped[name])) == who.visible[name]
+        assert len(who.images[name]) == len(prior.persons)
+        for person, true_id in zip(prior.persons, who.images[name], strict=True):
+            if true_id == FALSE_DETECTION:
+                continue
+            px = np.floor(person.surface_map.xy_img).astype(int)
+            on = [owner.get(tuple(p), -2) for p in px]
+            assert np.mean(np.array(on) == true_id) > 0.99, (name, true_id)
+            checked += 1
+    assert checked >= 15
+    # The clean level reports every visible person.
+    clean = read_gt_persons(gt_persons_path(anon, "priors_clean"))
+    for name, ids in clean.images.items():
+        assert sorted(ids) == clean.visible[name] and not clean.dropped[name]
+
+
+def test_missed_people_are_absent_from_the_priors(crowd):
+    anon, _ = crowd
+    priors = read_priors(anon / "priors")
+    who = read_gt_persons(gt_persons_path(anon, "priors"))
+    dropped = [(n, i, r) for n, d in who.dropped.items() for i, r in d.items()]
+    assert any(r.startswith("missed") for _, _, r in dropped), dropped
+    for name, person_id, reason in dropped:
+        assert reason.split(" ")[0] in ("missed", "cut", "too"), reason
+        assert person_id in who.visible[name] and person_id not in who.images[name]
+        # No reported person covers the dropped person's pixels.
+        owner = _pixel_owner(anon, name)
+        for person in priors.images[name].persons:
+            px = np.floor(person.surface_map.xy_img).astype(int)
+            on = np.array([owner.get(tuple(p), -2) for p in px])
+            assert np.mean(on == person_id) < 0.5
+
+
+def test_bystander_is_seen_by_a_few_cameras_only(crowd):
+    anon, _ = crowd
+    who = read_gt_persons(gt_persons_path(anon, "priors"))
+    (bystander,) = [i for i, role in who.people.items() if role == "bystander"]
+    seen = sum(bystander in ids for ids in who.visible.values())
+    assert 1 <= seen < len(who.visible)
+    spec = json.loads((anon / "scene.json").read_text())
+    people = {p["person_id"]: np.array(p["position_xy"]) for p in spec["people"]}
+    group = np.mean([xy for i, xy in people.items() if i != bystander], axis=0)
+    assert 3.0 <= np.linalg.norm(people[bystander] - group) <= 5.0
+    # The close pair: persons 0 and 1 stand 0.5-0.8 m apart.
+    assert 0.5 <= np.linalg.norm(people[0] - people[1]) <= 0.8
+
+
+def test_false_detections_are_flagged_and_are_nobody(crowd):
+    anon, ids = crowd
+    priors = read_priors(anon / "priors")
+    gt = read_priors(anon / "gt" / "priors")
+    who = read_gt_persons(gt_persons_path(anon, "priors"))
+    false = [
+        (name, k)
+        for name, true_ids in who.images.items()
+        for k, i in enumerate(true_ids)
+        if i == FALSE_DETECTION
+    ]
+    assert false, "the hard level of this seed makes false detections"
+    for name, k in false:
+        fake = priors.images[name].persons[k].vertices_cam
+        for real in gt.images[name].persons:
+            # Same topology: vertex-wise distance to every real person's true mesh.
+            assert np.median(np.linalg.norm(fake - real.vertices_cam, axis=1)) > 0.2
+    # With ids, each false detection gets its own id, linked to nothing.
+    with_ids = read_priors(ids / "priors")
+    fake_ids = [with_ids.images[n].persons[k].person_id for n, k in false]
+    assert len(set(fake_ids)) == len(fake_ids)
+    assert all(i >= FALSE_ID_BASE for i in fake_ids)
+
+
+def test_with_ids_adds_the_true_ids_and_changes_nothing_else(crowd):
+    anon, ids = crowd
+    a, b = _digest(anon), _digest(ids)
+    # Images, ground truth, surface maps: the same bytes.
+    same = [k for k in a if not k.startswith("priors") and k != "scene.json"]
+    assert same and all(a[k] == b[k] for k in same)
+    pa, pb = read_priors(anon / "priors"), read_priors(ids / "priors")
+    who = read_gt_persons(gt_persons_path(anon, "priors"))
+    derived = true_ids_priors(pa, who)
+    for name in pa.images:
+        for x, y, z in zip(
+            pa.images[name].persons,
+            pb.images[name].persons,
+            derived.images[name].persons,
+            strict=True,
+        ):
+            np.testing.assert_array_equal(x.vertices_cam, y.vertices_cam)
+            np.testing.assert_array_equal(x.surface_map.xy_img, y.surface_map.xy_img)
+            assert y.person_id == z.person_id is not None
+        assert [p.person_id for p in pb.images[name].persons if p.person_id < 1000] == [
+            i for i in who.images[name] if i != FALSE_DETECTION
+        ]
+
+
+def test_association_score_counts_links_across_views(crowd):
+    anon, _ = crowd
+    who = read_gt_persons(gt_persons_path(anon, "priors"))
+    truth = {
+        n: [None if i == FALSE_DETECTION else i for i in ids]
+        for n, ids in who.images.items()
+    }
+    perfect = association_score(who, truth)
+    assert perfect.true_links > 0
+    assert perfect.precision == perfect.recall == 1.0
+    nothing = association_score(who, {})
+    assert nothing.predicted_links == 0 and nothing.recall == 0.0
+    everyone = association_score(who, {n: [0] * len(i) for n, i in who.images.items()})
+    assert everyone.recall == 1.0 and everyone.precision < 1.0
+    # Swapping two people's ids in one image breaks exactly their links.
+    name = max(who.images, key=lambda n: len(set(who.images[n]) - {FALSE_DETECTION}))
+    swapped = dict(truth)
+    row = list(truth[name])
+    j, k = [i for i, t in enumerate(row) if t is not None][:2]
+    row[j], row[k] = row[k], row[j]
+    swapped[name] = row
+    score = association_score(who, swapped)
+    assert score.correct_links < perfect.correct_links
+    assert score.predicted_links == perfect.predicted_links
+
+
+def test_crowd_scenes_are_deterministic(tmp_path):
+    opts = dict(CROWD, num_cameras=3, width=320, height=240, extra_noise=())
+    a = generate("dome", tmp_path / "a", SynthOptions(**opts)).out_dir
+    b = generate("dome", tmp_path / "b", SynthOptions(**opts)).out_dir
+    da, db = _digest(a), _digest(b)
+    assert "gt/persons.json" in da and da == db
+
+
+def test_dress_alike_shares_the_clothes():
+    from colmap_vc.synthetic import bodies as body_lib
+    from colmap_vc.synthetic.render import build_world
+
+    bodies = body_lib.load_bodies()
+    outfits = {}
+    for alike in (False, True):
+        rng = np.random.default_rng(5)
+        layout = make_layout(
+            Preset.DOME,
+            rng,
+            num_phenotypes=bodies.rest_vertices.shape[0],
+            num_poses=bodies.pose_rotvec.shape[0],
+            options=LayoutOptions(num_people=2, num_cameras=2),
+        )
+        posed = [body_lib.pose_body(bodies, p.phenotype, p.pose) for p in layout.people]
+        world = build_world(layout, bodies, posed, rng, dress_alike=alike)
+        outfits[alike] = [p.outfit for p in world.people]
+    distinct, alike = outfits[False], outfits[True]
+    assert not np.allclose(distinct[0].shirt, distinct[1].shirt)
+    np.testing.assert_array_equal(alike[1].shirt, alike[0].shirt)
+    np.testing.assert_array_equal(alike[1].trousers, alike[0].trousers)
+    assert alike[1].pattern == alike[0].pattern
+    np.testing.assert_array_equal(alike[1].skin, distinct[1].skin)
+
+
+def test_cli_flags_reach_the_generator(tmp_path):
+    from colmap_vc.cli import main
+
+    common = ["--cameras", "2", "--people", "2", "--width", "160", "--height", "120"]
+    common += ["--no-database", "--close-pair", "--bystander", "--dress-alike"]
+    for name, extra in (("anon", []), ("ids", ["--with-ids"])):
+        assert main(["synth", "dome", str(tmp_path / name), *common, *extra]) == 0
+    spec = json.loads((tmp_path / "ids" / "scene.json").read_text())
+    opts = spec["options"]
+    assert opts["with_ids"] and opts["close_pair"] and opts["bystander"]
+    assert opts["dress_alike"] and spec["people"][-1]["bystander"]
+    anon = read_priors(tmp_path / "anon" / "priors")
+    ids = read_priors(tmp_path / "ids" / "priors")
+    assert all(p.person_id is None for im in anon.images.values() for p in im.persons)
+    who = read_gt_persons(gt_persons_path(tmp_path / "ids"))
+    for name, prior in ids.images.items():
+        got = [p.person_id for p in prior.persons]
+        want = who.images[name]
+        assert [g for g, w in zip(got, want, strict=True) if w >= 0] == [
+            w for w in want if w >= 0
+        ]

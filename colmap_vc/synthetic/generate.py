@@ -5,8 +5,11 @@ Layout of OUT_DIR::
     images/cam00.jpg ...        rendered images
     gt/sparse/                  ground-truth COLMAP model (.bin and .txt)
     gt/surface/cam00.npz ...    ground-truth surface maps (pixel -> person, face, bary)
-    gt/priors/                  ground-truth priors (the `clean` level), format v1
-    priors/                     predicted priors at the requested noise level
+    gt/priors/                  ground-truth priors (every visible person, true ids)
+    gt/persons.json             true id of each person of priors/ (gt.py has the format)
+    gt/persons_<level>.json     the same for priors_<level>/
+    priors/                     predicted priors at the requested noise level:
+                                anonymous (unless with_ids), detection failures
     priors_<level>/             more levels when asked (--extra-noise)
     database.db                 SIFT features + exhaustive matches (pycolmap)
     scene.json                  what was generated, from which seed and options
@@ -14,6 +17,7 @@ Layout of OUT_DIR::
 
 from __future__ import annotations
 
+import dataclasses
 import json
 import logging
 import shutil
@@ -30,6 +34,19 @@ from .. import __version__
 from ..priors import write_priors
 from ..structs import ImagePrior, ScenePriors
 from . import bodies as body_lib
+from .detection import (
+    DETECTION_LEVELS,
+    false_person_view,
+    landmark_visibility,
+    miss_reason,
+)
+from .gt import (
+    FALSE_DETECTION,
+    FALSE_ID_BASE,
+    GtPersons,
+    gt_persons_path,
+    write_gt_persons,
+)
 from .layout import CameraSpec, LayoutOptions, Preset, SceneLayout, make_layout
 from .noise import NOISE_LEVELS, NoiseLevel, PersonView, predict_person
 from .render import FIRST_PERSON, RenderedView, build_world, render_view
@@ -68,6 +85,15 @@ class SynthOptions:
     """Replace an existing OUT_DIR."""
     num_threads: int = -1
     """Threads for COLMAP (-1: all cores)."""
+    with_ids: bool = False
+    """Give the predicted priors each person's true id (the association solved);
+    by default they are anonymous, as a detector's output is."""
+    close_pair: bool = False
+    """The first two people stand 0.5-0.8 m apart and overlap in some views."""
+    bystander: bool = False
+    """Add a bystander 3-5 m from the group, seen by a few cameras only."""
+    dress_alike: bool = False
+    """The second person wears the first one's clothes (own skin and hair)."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -184,6 +210,67 @@ def _write_surface_map(
     return sum(len(v.xy_img) for v in views)
 
 
+@dataclass(kw_only=True, slots=True)
+class _Detections:
+    """Predicted priors of one level and the ground truth of who they are."""
+
+    priors: dict[str, ImagePrior] = field(default_factory=dict)
+    true_ids: dict[str, list[int]] = field(default_factory=dict)
+    dropped: dict[str, dict[int, str]] = field(default_factory=dict)
+    num_false: int = 0
+
+
+def _detect(
+    out: _Detections,
+    bodies: body_lib.BodyModel,
+    views: list[PersonView],
+    view: RenderedView,
+    layout: SceneLayout,
+    image_name: str,
+    camera: pycolmap.Camera,
+    level: NoiseLevel,
+    rng: np.random.Generator,
+    with_ids: bool,
+) -> None:
+    """What a detector + prior network report in one image: some of the people, maybe
+    a false one, in random order, each with its noisy prior (anonymous unless
+    ``with_ids``)."""
+    model = DETECTION_LEVELS[level]
+    index_of = {p.person_id: k for k, p in enumerate(layout.people)}
+    kept: list[PersonView] = []
+    dropped: dict[int, str] = {}
+    for v in views:
+        vis = landmark_visibility(
+            bodies, v, camera, view.geom_idx, FIRST_PERSON + index_of[v.person_id]
+        )
+        reason = miss_reason(vis, model, rng)
+        if reason is None:
+            kept.append(v)
+        else:
+            dropped[v.person_id] = reason
+    if rng.random() < model.false_prob:
+        fake = false_person_view(bodies, camera, rng, person_id=FALSE_DETECTION)
+        if fake is not None:
+            kept.append(fake)
+    order = rng.permutation(len(kept))
+    persons, true_ids = [], []
+    for i in order:
+        person = predict_person(bodies, kept[i], camera, level, rng)
+        true_id = kept[i].person_id
+        if not with_ids:
+            pid = None
+        elif true_id == FALSE_DETECTION:
+            pid = FALSE_ID_BASE + out.num_false
+            out.num_false += 1
+        else:
+            pid = true_id
+        persons.append(dataclasses.replace(person, person_id=pid))
+        true_ids.append(true_id)
+    out.priors[image_name] = ImagePrior(image_name=image_name, persons=tuple(persons))
+    out.true_ids[image_name] = true_ids
+    out.dropped[image_name] = dropped
+
+
 def build_database(out_dir: Path, layout: SceneLayout, options: SynthOptions) -> Path:
     """SIFT extraction with the known intrinsics, then exhaustive matching."""
     db_path = out_dir / "database.db"
@@ -239,20 +326,21 @@ def generate(
             height=options.height,
             camera_model=options.camera_model,
             pair_angle_deg=options.pair_angle_deg,
+            close_pair=options.close_pair,
+            bystander=options.bystander,
         ),
     )
     posed = [body_lib.pose_body(bodies, p.phenotype, p.pose) for p in layout.people]
-    world = build_world(layout, bodies, posed, rng)
+    world = build_world(layout, bodies, posed, rng, dress_alike=options.dress_alike)
     for sub in ("images", "gt/surface", "gt/sparse"):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
     timings["setup"] = time.perf_counter() - t0
 
     gt_priors: dict[str, ImagePrior] = {}
-    pred_priors: dict[str, ImagePrior] = {}
+    visible: dict[str, list[int]] = {}
+    pred = _Detections()
     extra = [NoiseLevel(level) for level in options.extra_noise]
-    extra_priors: dict[NoiseLevel, dict[str, ImagePrior]] = {
-        level: {} for level in extra
-    }
+    extra_pred = {level: _Detections() for level in extra}
     extra_rng = {
         level: np.random.default_rng(
             [options.seed, 1000 + list(NoiseLevel).index(level)]
@@ -286,20 +374,31 @@ def generate(
                 for i in order
             ),
         )
-        pred_priors[spec.name] = ImagePrior(
-            image_name=spec.name,
-            persons=tuple(
-                predict_person(bodies, views[i], camera, options.noise, rng)
-                for i in order
-            ),
+        visible[spec.name] = sorted(v.person_id for v in views)
+        _detect(
+            pred,
+            bodies,
+            views,
+            view,
+            layout,
+            spec.name,
+            camera,
+            NoiseLevel(options.noise),
+            rng,
+            options.with_ids,
         )
         for level in extra:
-            extra_priors[level][spec.name] = ImagePrior(
-                image_name=spec.name,
-                persons=tuple(
-                    predict_person(bodies, views[i], camera, level, extra_rng[level])
-                    for i in order
-                ),
+            _detect(
+                extra_pred[level],
+                bodies,
+                views,
+                view,
+                layout,
+                spec.name,
+                camera,
+                level,
+                extra_rng[level],
+                options.with_ids,
             )
         t_render += t2 - t1
         t_priors += time.perf_counter() - t2
@@ -315,18 +414,27 @@ def generate(
         templates=templates,
         image_sizes=sizes,
     )
-    write_priors(
-        ScenePriors(images=pred_priors),
-        out_dir / "priors",
-        templates=templates,
-        image_sizes=sizes,
-    )
-    for level, images in extra_priors.items():
+    roles = {
+        p.person_id: "bystander" if p.bystander else "person" for p in layout.people
+    }
+    for folder, det in [("priors", pred)] + [
+        (f"priors_{level.value}", d) for level, d in extra_pred.items()
+    ]:
         write_priors(
-            ScenePriors(images=images),
-            out_dir / f"priors_{level.value}",
+            ScenePriors(images=det.priors),
+            out_dir / folder,
             templates=templates,
             image_sizes=sizes,
+        )
+        write_gt_persons(
+            gt_persons_path(out_dir, folder),
+            GtPersons(
+                priors=folder,
+                people=roles,
+                images=det.true_ids,
+                visible=visible,
+                dropped=det.dropped,
+            ),
         )
     rec = gt_reconstruction(layout)
     rec.write_binary(str(out_dir / "gt/sparse"))
@@ -347,6 +455,7 @@ def generate(
             for k, v in asdict(options).items()
         },
         "noise_model": asdict(NOISE_LEVELS[NoiseLevel(options.noise)]),
+        "detection_model": asdict(DETECTION_LEVELS[NoiseLevel(options.noise)]),
         "backdrop": layout.backdrop.value,
         "people": [
             {
@@ -355,6 +464,7 @@ def generate(
                 "pose": bodies.pose_names[p.pose],
                 "position_xy": p.position_xy.tolist(),
                 "yaw_deg": float(np.degrees(p.yaw_rad)),
+                "bystander": p.bystander,
             }
             for p in layout.people
         ],

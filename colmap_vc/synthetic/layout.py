@@ -62,6 +62,7 @@ class PersonPlacement:
     pose: int
     position_xy: FloatArray  # (2,) metres on the floor
     yaw_rad: float  # rotation about +Z of the body frame (body faces +Y at yaw 0)
+    bystander: bool = False  # away from the group, seen by a few cameras only
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -90,6 +91,12 @@ class LayoutOptions:
     """COLMAP camera model; None picks the preset's default (with distortion)."""
     pair_angle_deg: float | None = None
     """Pair preset: angle between the two cameras, seen from the people."""
+    close_pair: bool = False
+    """Place the first two people 0.5-0.8 m apart (centre to centre), so they overlap
+    in some views (the default keeps people at least 0.8 m apart)."""
+    bystander: bool = False
+    """Add a bystander 3-5 m from the group's centre, in the widest gap between camera
+    azimuths: only the cameras across the scene see it, small and often cut."""
 
 
 DEFAULT_CAMERA_MODEL = {
@@ -146,14 +153,27 @@ def _place_people(
     num_phenotypes: int,
     num_poses: int,
     rng: np.random.Generator,
+    close_pair: bool = False,
 ) -> tuple[PersonPlacement, ...]:
-    """Up to three people near the origin, at least 0.8 m apart, random bodies."""
+    """Up to three people near the origin, at least 0.8 m apart, random bodies.
+
+    ``close_pair``: the second person stands 0.5-0.8 m from the first.
+    """
     if not 1 <= num_people <= 3:
         raise ValueError(f"num_people={num_people} must be between 1 and 3")
+    if close_pair and num_people < 2:
+        raise ValueError("close_pair needs num_people >= 2")
     positions: list[FloatArray] = []
     while len(positions) < num_people:
         if num_people == 1:
             p = rng.uniform(-0.2, 0.2, size=2)
+        elif close_pair and len(positions) == 1:
+            angle = rng.uniform(0, 2 * math.pi)
+            p = positions[0] + rng.uniform(0.5, 0.8) * np.array(
+                [math.cos(angle), math.sin(angle)]
+            )
+            positions.append(p)
+            continue
         else:
             angle = rng.uniform(0, 2 * math.pi)
             p = rng.uniform(0.5, 1.0) * np.array([math.cos(angle), math.sin(angle)])
@@ -184,7 +204,9 @@ def make_layout(
     options = options or LayoutOptions()
     preset = Preset(preset)
     model = options.camera_model or DEFAULT_CAMERA_MODEL[preset]
-    people = _place_people(options.num_people, num_phenotypes, num_poses, rng)
+    people = _place_people(
+        options.num_people, num_phenotypes, num_poses, rng, options.close_pair
+    )
     centroid = np.mean([p.position_xy for p in people], axis=0)
     if preset is Preset.PAIR:
         num_cameras = 2
@@ -260,8 +282,38 @@ def make_layout(
                 cam_from_world=look_at(centre, target, math.radians(rng.normal(0, 2))),
             )
         )
+    if options.bystander:
+        bystander = _place_bystander(
+            len(people), centroid, azimuth, num_phenotypes, num_poses, rng
+        )
+        people = (*people, bystander)
     return SceneLayout(
         preset=preset, backdrop=backdrop, cameras=tuple(cameras), people=people
+    )
+
+
+def _place_bystander(
+    person_id: int,
+    centroid: FloatArray,
+    camera_azimuth: FloatArray,
+    num_phenotypes: int,
+    num_poses: int,
+    rng: np.random.Generator,
+) -> PersonPlacement:
+    """A person 3-5 m from the group, in the widest gap between camera azimuths (so no
+    camera stands next to it), facing a random way."""
+    azi = np.sort(np.mod(camera_azimuth, 2 * math.pi))
+    gaps = np.diff(np.r_[azi, azi[0] + 2 * math.pi])
+    k = int(np.argmax(gaps))
+    angle = azi[k] + gaps[k] * rng.uniform(0.4, 0.6)
+    radius = rng.uniform(3.0, 5.0)
+    return PersonPlacement(
+        person_id=person_id,
+        phenotype=int(rng.integers(num_phenotypes)),
+        pose=int(rng.integers(num_poses)),
+        position_xy=centroid + radius * np.array([math.cos(angle), math.sin(angle)]),
+        yaw_rad=float(rng.uniform(-math.pi, math.pi)),
+        bystander=True,
     )
 
 

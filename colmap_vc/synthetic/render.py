@@ -8,7 +8,7 @@ little blur and sensor noise. Besides the image, every pixel records what it see
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import cv2
@@ -102,10 +102,15 @@ def build_world(
     bodies: BodyModel,
     posed_body_vertices: list[FloatArray],
     rng: np.random.Generator,
+    dress_alike: bool = False,
 ) -> World:
-    """Assemble the render scene: backdrop, then the people in layout order."""
+    """Assemble the render scene: backdrop, then the people in layout order.
+
+    ``dress_alike``: the second person wears the first one's clothes (same shirt
+    colours and pattern, trousers, shoes; own skin and hair).
+    """
     backdrop = _room() if layout.backdrop is Backdrop.ROOM else _dome()
-    people = []
+    people: list[PersonMesh] = []
     for person, verts in zip(layout.people, posed_body_vertices, strict=True):
         world_from_body = place_person(person.position_xy, person.yaw_rad)
         v_world = verts @ world_from_body[:, :3].T + world_from_body[:, 3]
@@ -122,6 +127,14 @@ def build_world(
                 body_from_world=body_from_world,
                 outfit=texture.Outfit.from_rng(rng),
             )
+        )
+    if dress_alike:
+        if len(people) < 2:
+            raise ValueError("dress_alike needs at least two people")
+        first, second = people[0].outfit, people[1].outfit
+        people[1] = replace(
+            people[1],
+            outfit=replace(first, skin=second.skin, hair=second.hair),
         )
     meshes = backdrop + [(p.vertices_world, p.faces) for p in people]
     scene = raycast.build_scene(meshes)
