@@ -65,9 +65,11 @@ class AssociationOptions:
     appearance_sigma: float = 18.0
     """Noise of a body region's median CIELAB colour between two cameras (lighting,
     white balance, shading): 8-bit Lab units."""
-    height_sigma_m: float = 0.12
-    """Noise of the fitted body's height between two views, metres (MediaPipe fits
-    of one person differ by up to 0.1 m on pose2sim)."""
+    height_sigma_m: float = 0.3
+    """Noise of the fitted body's height between two views, metres: it follows the
+    prior's scale error (one person's realistic synthetic priors differ by up to
+    0.3 m, MediaPipe fits on pose2sim by up to 0.16 m), so height only breaks ties
+    between people of clearly different size."""
     min_link_margin: float = 0.25
     """A link is kept only when the best assignment holding it beats the best one
     without it by this log-likelihood (else the pair abstains for that person)."""
