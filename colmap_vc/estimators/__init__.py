@@ -38,9 +38,9 @@ class EstimatorOptions:
     estimator: EstimatorKind = EstimatorKind.MEDIAPIPE
     """The estimator (only MediaPipe Pose is bundled)."""
     max_people: int = 4
-    """Most people looked for per image (MediaPipe finds one per pass)."""
+    """Most people kept per image (best detections first)."""
     min_detection_confidence: float = 0.5
-    """MediaPipe's person-detector threshold."""
+    """Score threshold of the BlazePose person detector."""
     min_visibility: float = 0.5
     """Landmarks below this visibility are neither 2D evidence nor valid keypoints."""
     min_mean_visibility: float = 0.5
