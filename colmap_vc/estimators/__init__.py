@@ -41,6 +41,9 @@ class EstimatorOptions:
     """Most people kept per image (best detections first)."""
     min_detection_confidence: float = 0.5
     """Score threshold of the BlazePose person detector."""
+    detector_levels: int = 3
+    """Detector passes: 1 = the whole image (as MediaPipe), 2 = also squares of the
+    shorter side, 3 = also half-size squares (finds people far away; slower)."""
     min_visibility: float = 0.5
     """Landmarks below this visibility are neither 2D evidence nor valid keypoints."""
     min_mean_visibility: float = 0.5

@@ -287,28 +287,50 @@ class BlazePose:
         ]
 
     def detect(
-        self, image_rgb: np.ndarray, min_score: float = 0.5, tiles: bool = True
+        self,
+        image_rgb: np.ndarray,
+        min_score: float = 0.5,
+        levels: int = 3,
+        fine_min_score: float = 0.7,
     ) -> list[PersonBox]:
-        """Every person box, best first (image pixels).
+        """Every person box (image pixels), best first.
 
-        The detector sees the whole image letterboxed (as MediaPipe runs it) and, with
-        ``tiles``, also overlapping squares of the shorter side along the longer one
-        (people far away are a few detector pixels tall in the whole image). Boxes of
-        different passes are not merged here: the landmarks say who is the same person.
+        Pass 0 is MediaPipe's: the whole image letterboxed. People far away are a few
+        detector pixels tall there, so pass 1 runs the detector on squares of the
+        image's shorter side along its longer one and pass 2 on squares of half that
+        side (a grid, half overlapping), keeping only boxes scoring ``fine_min_score``
+        (small squares see parts of people as people). ``levels`` is the number of
+        passes. Boxes of different passes are not merged here: the landmarks say who
+        is the same person (:func:`find_people`).
         """
         h, w = image_rgb.shape[:2]
-        rois = [
-            Roi(
-                center=np.array([w / 2.0, h / 2.0]), side=float(max(h, w)), rotation=0.0
-            )
+        size = np.array([w, h], dtype=np.float64)
+        passes: list[tuple[list[Roi], float]] = [
+            ([Roi(center=size / 2.0, side=float(max(h, w)), rotation=0.0)], min_score)
         ]
-        short, long_ = min(h, w), max(h, w)
-        if tiles and long_ > 1.2 * short:
-            n = int(np.ceil((long_ - short) / (short / 2.0))) + 1
-            for pos in np.linspace(short / 2.0, long_ - short / 2.0, n):
-                centre = np.array([pos, short / 2.0] if w >= h else [short / 2.0, pos])
-                rois.append(Roi(center=centre, side=float(short), rotation=0.0))
-        found = [d for roi in rois for d in self._detect_roi(image_rgb, roi, min_score)]
+        short = float(min(h, w))
+        for level, threshold in ((1, min_score), (2, max(min_score, fine_min_score))):
+            side = short / level
+            if level >= levels or (level == 1 and max(h, w) < 1.2 * short):
+                continue
+            axes = [
+                np.linspace(
+                    side / 2.0,
+                    n - side / 2.0,
+                    int(np.ceil((n - side) / (side / 2.0))) + 1,
+                )
+                for n in size
+            ]
+            centres = np.stack(np.meshgrid(*axes), axis=-1).reshape(-1, 2)
+            passes.append(
+                ([Roi(center=c, side=side, rotation=0.0) for c in centres], threshold)
+            )
+        found = [
+            d
+            for rois, threshold in passes
+            for roi in rois
+            for d in self._detect_roi(image_rgb, roi, threshold)
+        ]
         return sorted(found, key=lambda d: -d.score)
 
     def landmarks(self, image_rgb: np.ndarray, det: PersonBox) -> PoseResult:
@@ -409,21 +431,35 @@ def find_people(
     min_score: float = 0.5,
     min_presence: float = 0.5,
     max_people: int = 8,
-    tiles: bool = True,
+    levels: int = 3,
+    min_fill: float = 0.5,
 ) -> list[PoseResult]:
     """Every person in an RGB image: detections -> landmarks, duplicates merged.
 
-    Detections are taken best first; a detection whose landmarks land on a person
-    already found (:func:`same_person`) or whose pose-presence flag is below
-    ``min_presence`` adds nobody.
+    Detections are taken best first. A detection adds nobody when its pose-presence
+    flag is below ``min_presence``, when its landmarks' box spans less than
+    ``min_fill`` of its crop (the landmarks collapsed onto something that is not a
+    whole person: a real one fills 0.55-0.8 on pose2sim, false ones 0.3-0.45), when
+    they land on a person already found (:func:`same_person`) or on a small part of
+    one (e.g. a crop on the legs).
     """
     people: list[PoseResult] = []
-    for det in model.detect(image_rgb, min_score, tiles=tiles):
+    seen: list[FloatArray] = []  # (2, 2) hip and scale keypoints of tried detections
+    for det in model.detect(image_rgb, min_score, levels=levels):
         if len(people) >= max_people:
             break
+        # The same person seen by several passes: its ROI is already tried.
+        kps = det.keypoints[:2]
+        tol = 0.15 * float(np.linalg.norm(kps[1] - kps[0]))
+        if any(np.linalg.norm(kps - k, axis=1).max() < tol for k in seen):
+            continue
+        seen.append(kps)
         res = model.landmarks(image_rgb, det)
         if res.presence < min_presence:
             logger.debug("detection %.2f: pose presence %.2f", det.score, res.presence)
+            continue
+        box = landmark_box(res.landmarks, 0.5)
+        if float((box[2:] - box[:2]).max()) < min_fill * res.roi.side:
             continue
         if any(same_person(res.landmarks, p.landmarks) for p in people):
             continue

@@ -67,6 +67,7 @@ def detect_people(
         image_rgb,
         min_score=options.min_detection_confidence,
         max_people=options.max_people,
+        levels=options.detector_levels,
     )
     return [
         Detection(landmarks=p.landmarks, segmentation=blazepose.segmentation_mask(p))
