@@ -98,7 +98,8 @@ def match(dets: list[body.BodyLandmarks], labels: list[dict]) -> list[int | None
 
 
 def run(method: str, dataset: str, labels: dict[str, list[dict]]) -> dict:
-    options = EstimatorOptions()
+    levels = int(method[-1]) if method.startswith("blazepose") else 1
+    options = EstimatorOptions(detector_levels=levels)
     if method == "legacy":
         import mediapipe as mp
 
@@ -148,11 +149,11 @@ def main() -> None:
     doc = json.loads(LABELS.read_text())
     results: dict[str, dict] = {}
     for dataset in ("pose2sim_single", "pose2sim_multi"):
-        for method in ("legacy", "blazepose"):
+        for method in ("legacy", "blazepose2", "blazepose3"):
             r = run(method, dataset, doc[dataset])
             results[f"{dataset}/{method}"] = r
             print(
-                f"{dataset:16s} {method:9s} recall {r['recall']:.2f} (main "
+                f"{dataset:16s} {method:10s} recall {r['recall']:.2f} (main "
                 f"{r['recall_main']:.2f}) precision {r['precision']:.2f} "
                 f"{r['seconds_per_image']:.2f} s/image"
             )
@@ -163,12 +164,19 @@ def main() -> None:
     (OUT / "detection.json").write_text(
         json.dumps({"machine": machine(), "results": results}, indent=1)
     )
-    names = {"legacy": "legacy Pose, repainted", "blazepose": "BlazePose multi-person"}
+    names = {
+        "legacy": "legacy Pose, repainted (former)",
+        "blazepose2": "BlazePose multi-person, 2 passes (default)",
+        "blazepose3": "BlazePose multi-person, 3 passes",
+    }
     lines = [
         "Person detection against hand labels (tests/data/pose2sim_people.json; "
         "`PYTHONPATH=$PWD python bench/detection.py`). Main = the man and the woman; "
         "all = also the bystander (cam01, cam02). A detection matches when its "
-        "landmark box has IoU >= 0.5 with the label or its hip centre is inside.",
+        "landmark box has IoU >= 0.5 with the label or its hip centre is inside. "
+        "Passes (`EstimatorOptions.detector_levels`): the whole image, squares of "
+        "the shorter side, half-size squares. s/image: detection only (one CPU "
+        "thread, a shared machine).",
         "",
         "| data | detector | recall main | recall all | precision | s/image |",
         "|---|---|---|---|---|---|",
