@@ -24,6 +24,7 @@ OpenCV's warps index pixel centres at integers, hence the 0.5 shifts.
 from __future__ import annotations
 
 import functools
+import importlib.util
 import logging
 from dataclasses import dataclass
 from pathlib import Path
@@ -78,16 +79,16 @@ class PoseResult:
 
 
 def models_dir() -> Path:
-    """The ``mediapipe/modules`` folder of the installed MediaPipe wheel."""
-    try:
-        import mediapipe
-    except ImportError as exc:
+    """The ``mediapipe/modules`` folder of the installed MediaPipe wheel (found
+    without importing MediaPipe: only its model files are used)."""
+    spec = importlib.util.find_spec("mediapipe")
+    if spec is None or not spec.submodule_search_locations:
         raise ImportError(
             "the MediaPipe estimator needs the models of mediapipe 0.10.14: "
-            "pip install --no-deps mediapipe==0.10.14 absl-py attrs flatbuffers "
-            "'protobuf>=4.25.3,<5' ai-edge-litert (see docs/real-data.md)"
-        ) from exc
-    return Path(mediapipe.__file__).parent / "modules"
+            "pip install --no-deps mediapipe==0.10.14 and pip install ai-edge-litert "
+            "(see docs/real-data.md)"
+        )
+    return Path(next(iter(spec.submodule_search_locations))) / "modules"
 
 
 def _interpreter(path: Path) -> Any:
