@@ -120,6 +120,57 @@ def test_two_people_side_by_side(model):
     assert all(s.sum() > 10_000 for s in seg) and not (seg[0] & seg[1]).any()
 
 
+@pytest.fixture(scope="module")
+def synthetic_pair(tmp_path_factory: pytest.TempPathFactory):
+    """A synthetic pair (colmap-vc synth): two people, two cameras."""
+    from colmap_vc.synthetic import SynthOptions, generate
+
+    out = tmp_path_factory.mktemp("synth")
+    generate(
+        "pair",
+        out,
+        SynthOptions(
+            seed=3,
+            num_people=2,
+            width=960,
+            height=720,
+            make_database=False,
+            overwrite=True,
+        ),
+    )
+    return out
+
+
+def test_synthetic_two_people_found_at_their_places(model, synthetic_pair):
+    """Every detection is a rendered person, found once, where the ground truth puts
+    it (its landmark box overlaps the box of the projected joints, IoU >= 0.5); every
+    person whose box overlaps nobody else's is found (one may hide the other)."""
+    from colmap_vc.estimators.mediapipe import read_image
+    from colmap_vc.priors import read_priors
+
+    gt = read_priors(synthetic_pair / "gt" / "priors")
+    num_apart = 0
+    for name, image_prior in gt.images.items():
+        image = read_image(synthetic_pair / "images" / name)
+        assert image is not None
+        people = bp.find_people(model, image, levels=3)
+        truth = np.array(
+            [
+                np.r_[p.keypoints_xy.min(axis=0), p.keypoints_xy.max(axis=0)]
+                for p in image_prior.persons
+            ]
+        )
+        assert len(truth) == 2 and 1 <= len(people) <= 2, name
+        found = np.array([bp.landmark_box(p.landmarks, 0.5) for p in people])
+        iou = bp.box_iou(found, truth)
+        assert iou.max(axis=1).min() >= 0.5, (name, iou)
+        assert len(set(iou.argmax(axis=1))) == len(people), (name, iou)
+        if bp.box_iou(truth[:1], truth[1:])[0, 0] == 0.0:  # apart: both visible
+            num_apart += 1
+            assert len(people) == 2, name
+    assert num_apart >= 1  # the scene has a view with the two people apart
+
+
 @pytest.mark.parametrize(
     ("dataset", "levels", "min_recall_main", "min_recall_all"),
     [
