@@ -182,11 +182,11 @@ def test_synthetic_two_people_found_at_their_places(model, synthetic_pair):
 def test_pose2sim_recall_and_precision(
     model, dataset, levels, min_recall_main, min_recall_all
 ):
-    """Against the hand labels, with 3 detector passes: pose2sim_multi recall 0.93 of
-    the man and the woman, 0.92 with the bystander, precision 1.00; pose2sim_single
-    1.00 / 0.97 / 1.00; 2 passes (the default) on pose2sim_multi 0.93 / 0.74 / 1.00
-    (bench/detection.py; the former repaint-and-rerun path: 0.88 / 0.70 and
-    1.00 / 0.67). Thresholds are the measured values rounded down."""
+    """Against the hand labels (bench/detection.py). 3 detector passes:
+    pose2sim_multi recall 0.97 of the man and the woman, 0.96 with the bystander,
+    precision 1.00; pose2sim_single 1.00 / 0.97 / 1.00. 2 passes (the default) on
+    pose2sim_multi: 0.95 / 0.76 / 1.00. The former repaint-and-rerun path: 0.88 / 0.70
+    and 1.00 / 0.67. Thresholds: the measured values rounded down to 0.1."""
     if not (DATA / dataset).is_dir():
         pytest.skip(f"{dataset} not available")
     from bench.detection import match

@@ -45,6 +45,12 @@ NMS_IOU = 0.3
 ROI_SCALE = 1.25  # pose_detection_to_roi: rect scaled by 1.25, square on its long side
 HEATMAP_KERNEL = 7
 HEATMAP_MIN_CONFIDENCE = 0.5
+# find_people: a crop whose landmarks share this fraction with a person already found
+# is that person again; sharing MAYBE_SAME, it counts only with a confident detection
+# (a person partly behind another, not a crop mixing the two).
+SAME_PERSON = 0.5
+MAYBE_SAME = 1.0 / 3.0
+SURE_SCORE = 0.8
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -399,16 +405,18 @@ def segmentation_mask(result: PoseResult) -> BoolArray:
     return result.segmentation_logits >= 0.0
 
 
-def same_person(a: body.BodyLandmarks, b: body.BodyLandmarks, tol: float = 0.1) -> bool:
-    """Whether two landmark sets describe one person: at least a third of their 33
-    landmarks coincide within ``tol`` x the person's size (longer side of the larger
-    landmark box). A crop on part of a person (e.g. the legs) repeats some of its
-    landmarks; two different people almost never put the same joint at one spot."""
+def shared_landmarks(
+    a: body.BodyLandmarks, b: body.BodyLandmarks, tol: float = 0.1
+) -> float:
+    """Fraction of the 33 landmarks two landmark sets put at the same place (within
+    ``tol`` x the longer side of the larger landmark box). The same person found
+    twice shares most; two people side by side share none; a crop between two
+    overlapping people mixes them and shares some with each."""
     size = max(
         float(np.ptp(a.xy_img, axis=0).max()), float(np.ptp(b.xy_img, axis=0).max())
     )
     dist = np.linalg.norm(a.xy_img - b.xy_img, axis=1)
-    return bool((dist < tol * max(size, 1.0)).mean() >= 1.0 / 3.0)
+    return float((dist < tol * max(size, 1.0)).mean())
 
 
 def _part_of(a: body.BodyLandmarks, b: body.BodyLandmarks) -> bool:
@@ -441,8 +449,9 @@ def find_people(
     flag is below ``min_presence``, when its landmarks' box spans less than
     ``min_fill`` of its crop (the landmarks collapsed onto something that is not a
     whole person: a real one fills 0.55-0.8 on pose2sim, false ones 0.3-0.45), when
-    they land on a person already found (:func:`same_person`) or on a small part of
-    one (e.g. a crop on the legs).
+    they repeat a person already found (:func:`shared_landmarks` >= ``SAME_PERSON``,
+    or >= ``MAYBE_SAME`` from a detection scoring below ``SURE_SCORE``) or land on a
+    small part of one (e.g. a crop on the legs).
     """
     people: list[PoseResult] = []
     seen: list[FloatArray] = []  # (2, 2) hip and scale keypoints of tried detections
@@ -462,7 +471,10 @@ def find_people(
         box = landmark_box(res.landmarks, 0.5)
         if float((box[2:] - box[:2]).max()) < min_fill * res.roi.side:
             continue
-        if any(same_person(res.landmarks, p.landmarks) for p in people):
+        shared = max(
+            (shared_landmarks(res.landmarks, p.landmarks) for p in people), default=0.0
+        )
+        if shared >= SAME_PERSON or (shared >= MAYBE_SAME and det.score < SURE_SCORE):
             continue
         if any(_part_of(res.landmarks, p.landmarks) for p in people):
             continue
