@@ -40,7 +40,7 @@ chromium:
 # second, non-headless OpenCV plus jax and sounddevice, which pose estimation never uses.
 mediapipe: $(STAMP)
 	$(PY) -m pip install -q --no-deps mediapipe==0.10.14
-	$(PY) -m pip install -q absl-py attrs flatbuffers "protobuf>=4.25.3,<5"
+	$(PY) -m pip install -q absl-py attrs flatbuffers "protobuf>=4.25.3,<5" ai-edge-litert
 
 # Fast tests (slow end-to-end checks are marked and run by test-all / .ci/run).
 test: $(STAMP) colmap38 chromium

@@ -20,6 +20,7 @@ from colmap_vc.synthetic import bodies as body_lib
 
 POSE2SIM = Path(__file__).resolve().parents[2] / "shared" / "data" / "pose2sim_single"
 # Body frame (+Y forward, +Z up) -> camera (x right, y down, z forward), facing it.
+PEOPLE = Path(__file__).resolve().parent / "data" / "pose2sim_people.json"
 FACING_CAMERA = np.array([[-1.0, 0, 0], [0, 0, -1], [0, -1, 0]])
 
 
@@ -229,22 +230,26 @@ def mediapipe_run(tmp_path_factory: pytest.TempPathFactory):
 def test_mediapipe_finds_the_person(mediapipe_run):
     summary, cameras, real = mediapipe_run
     priors = read_priors(summary.priors_path)
+    labels = json.loads(PEOPLE.read_text())["pose2sim_single"]
     for name in real:
         persons = priors.images[name].persons
-        assert len(persons) == 1, summary.skipped.get(name)
-        person, camera = persons[0], cameras[name]
-        depth = np.median(person.vertices_cam[:, 2])
-        assert 1.5 < depth < 7.0  # the cameras stand 2-6 m from the subject
-        report = next(r for r in summary.report.persons if r.image_name == name)
-        assert report.kept and report.mask_iou > 0.5
-        sil = prior.render_silhouette(camera, person.vertices_cam, person.faces)
-        assert person.mask is not None and prior.mask_iou(sil, person.mask) > 0.5
-        valid = person.keypoints_valid
-        assert valid is not None and valid.sum() >= 8
-        xy = person.keypoints_xy[valid]
-        assert np.all((xy >= 0) & (xy <= [camera.width, camera.height]))
-        assert person.surface_map is not None and len(person.surface_map) > 1000
-        assert person.person_id is None and 0 < person.confidence <= 1
+        # The man; the bystander in the background of cam01 and cam02 may be found
+        # too (EstimatorOptions.detector_levels = 3), nobody else.
+        assert 1 <= len(persons) <= len(labels[name]), summary.skipped.get(name)
+        camera = cameras[name]
+        reports = [r for r in summary.report.persons if r.image_name == name]
+        assert all(r.kept and r.mask_iou > 0.5 for r in reports)
+        for person in persons:
+            depth = np.median(person.vertices_cam[:, 2])
+            assert 1.5 < depth < 12.0  # the man 2-6 m from the cameras, bystander ~9
+            sil = prior.render_silhouette(camera, person.vertices_cam, person.faces)
+            assert person.mask is not None and prior.mask_iou(sil, person.mask) > 0.5
+            valid = person.keypoints_valid
+            assert valid is not None and valid.sum() >= 8
+            xy = person.keypoints_xy[valid]
+            assert np.all((xy >= 0) & (xy <= [camera.width, camera.height]))
+            assert person.surface_map is not None and len(person.surface_map) > 500
+            assert person.person_id is None and 0 < person.confidence <= 1
 
 
 def test_mediapipe_skips_bad_images_with_a_reason(mediapipe_run):

@@ -38,9 +38,15 @@ class EstimatorOptions:
     estimator: EstimatorKind = EstimatorKind.MEDIAPIPE
     """The estimator (only MediaPipe Pose is bundled)."""
     max_people: int = 4
-    """Most people looked for per image (MediaPipe finds one per pass)."""
+    """Most people kept per image (best detections first)."""
     min_detection_confidence: float = 0.5
-    """MediaPipe's person-detector threshold."""
+    """Score threshold of the BlazePose person detector."""
+    detector_levels: int = 2
+    """Detector passes: 1 = the whole image (as MediaPipe), 2 = also squares of the
+    shorter side, 3 = also half-size squares, which find people far away (the
+    bystander of pose2sim) but cost ~0.5 s more per image. 3 finds every person, yet
+    today's pairwise association maps pose2sim_single t030 wrongly with the bystander
+    seen in two views only, so 2 is the default until association copes."""
     min_visibility: float = 0.5
     """Landmarks below this visibility are neither 2D evidence nor valid keypoints."""
     min_mean_visibility: float = 0.5

@@ -1,17 +1,15 @@
-"""The bundled prior estimator: MediaPipe Pose + the Anny body fit, offline on a CPU.
+"""The bundled prior estimator: MediaPipe's BlazePose models + the Anny body fit,
+offline on a CPU.
 
-MediaPipe 0.10.14 ships one pose-landmark model inside its wheel
-(``mediapipe/modules/pose_landmark/pose_landmark_full.tflite``, model complexity 1)
-and the person detector; the Tasks API (``PoseLandmarker``) needs a ``.task`` bundle
-that the wheel does not ship, and complexities 0 and 2 download their model on first
-use. So this module uses the legacy ``mp.solutions.pose.Pose(static_image_mode=True,
-model_complexity=1, enable_segmentation=True)``, which runs with no network.
+MediaPipe 0.10.14 ships its person detector (``pose_detection.tflite``) and one
+pose-landmark model (``pose_landmark_full.tflite``) inside its wheel. Its legacy
+``Pose`` solution keeps only the detector's best box, so
+:mod:`colmap_vc.estimators.blazepose` runs both models by hand (``ai-edge-litert``)
+and keeps every person: all detections of the whole image and of overlapping square
+tiles, landmarks and segmentation per detection crop, duplicates merged.
 
-Per image: MediaPipe finds one person per pass; the person's segmentation and
-landmark hull are painted grey and MediaPipe runs again, until it finds nobody, finds
-a region already taken (the same person again) or ``max_people`` are found. Each
-detection gets an image-local index and ``person_id = None`` (``augment`` associates
-people across images geometrically). A detection is skipped, with a reason, if it is
+Each detection gets an image-local index and ``person_id = None`` (``augment``
+associates people across images). A detection is skipped, with a reason, if it is
 low-confidence, too small, cut by the frame, or if the body fit fails or disagrees
 with the silhouette. An image is never an error: a missing, unreadable or mis-sized
 image is skipped with a reason too.
@@ -22,9 +20,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
-import warnings
 from collections.abc import Mapping, Sequence
-from contextlib import AbstractContextManager
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -39,6 +35,7 @@ from colmap_vc.estimators import (
     EstimatorReport,
     PersonReport,
     appearance,
+    blazepose,
     body,
     fit,
     prior,
@@ -47,102 +44,36 @@ from colmap_vc.structs import BoolArray, ImagePrior, PersonPrior, ScenePriors
 
 logger = logging.getLogger(__name__)
 
-MODEL_COMPLEXITY = 1  # the only pose-landmark model inside the 0.10.14 wheel
-GREY = 128  # paint over found people so the next pass looks elsewhere
-
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class Detection:
-    """One MediaPipe detection: landmarks and segmentation."""
+    """One person found by BlazePose: landmarks and segmentation."""
 
     landmarks: body.BodyLandmarks
     segmentation: BoolArray  # (H, W) bool
 
 
-def _import_mediapipe() -> Any:
-    try:
-        import mediapipe
-    except ImportError as exc:
-        raise ImportError(
-            "the MediaPipe estimator needs mediapipe 0.10.14: pip install --no-deps "
-            "mediapipe==0.10.14 absl-py attrs flatbuffers 'protobuf>=4.25.3,<5' "
-            "(see docs/real-data.md)"
-        ) from exc
-    return mediapipe
-
-
-def open_pose(options: EstimatorOptions) -> AbstractContextManager[Any]:
-    """A MediaPipe Pose solution for still images (a context manager)."""
-    mp = _import_mediapipe()
-    return mp.solutions.pose.Pose(  # type: ignore[no-any-return]
-        static_image_mode=True,
-        model_complexity=MODEL_COMPLEXITY,
-        enable_segmentation=True,
-        min_detection_confidence=options.min_detection_confidence,
-    )
-
-
-def _to_landmarks(result: Any, width: int, height: int) -> body.BodyLandmarks:
-    """MediaPipe's result -> BodyLandmarks (pixels in COLMAP's convention)."""
-    image_lm = result.pose_landmarks.landmark
-    world_lm = result.pose_world_landmarks.landmark
-    norm = np.array([(p.x, p.y) for p in image_lm], dtype=np.float64)
-    # MediaPipe normalises by the image extent [0, W] x [0, H], which is COLMAP's
-    # continuous pixel frame (pixel centres at +0.5): pixel = normalised * size.
-    xy = norm * [width, height]
-    # World landmarks: metres, centred between the hips, x right, y down, z away from
-    # the camera (right-handed, like OpenCV).
-    p3 = np.array([(p.x, p.y, p.z) for p in world_lm], dtype=np.float64)
-    vis = np.array([p.visibility for p in image_lm], dtype=np.float64).clip(0.0, 1.0)
-    return body.BodyLandmarks(xy_img=xy, points_3d=p3, visibility=vis)
-
-
-def _landmark_region(lm: body.BodyLandmarks, shape: tuple[int, int]) -> BoolArray:
-    """The convex hull of the in-image landmarks, as a mask."""
-    h, w = shape
-    xy = lm.xy_img[np.isfinite(lm.xy_img).all(axis=1)]
-    region = np.zeros((h, w), dtype=np.uint8)
-    if len(xy) >= 3:
-        hull = cv2.convexHull((xy - 0.5).astype(np.float32))  # COLMAP -> OpenCV
-        cv2.fillConvexPoly(region, np.round(hull).astype(np.int32), 1)
-    return region.astype(bool)
+def open_pose(options: EstimatorOptions) -> blazepose.BlazePose:
+    """MediaPipe's detector and landmark models (a context manager)."""
+    del options  # thresholds are applied per image
+    return blazepose.BlazePose()
 
 
 def detect_people(
-    pose: Any, image_rgb: np.ndarray, options: EstimatorOptions
+    pose: blazepose.BlazePose, image_rgb: np.ndarray, options: EstimatorOptions
 ) -> list[Detection]:
-    """Every person MediaPipe finds in an RGB image, one pass per person."""
-    h, w = image_rgb.shape[:2]
-    work = image_rgb.copy()
-    taken = np.zeros((h, w), dtype=bool)
-    found: list[Detection] = []
-    for _ in range(options.max_people):
-        with warnings.catch_warnings():
-            # protobuf 4 warns about MediaPipe's use of a deprecated API on every call.
-            warnings.simplefilter("ignore", UserWarning)
-            result = pose.process(work)
-        if result.pose_landmarks is None or result.pose_world_landmarks is None:
-            break
-        lm = _to_landmarks(result, w, h)
-        seg = (
-            np.zeros((h, w), dtype=bool)
-            if result.segmentation_mask is None
-            else np.asarray(result.segmentation_mask) >= 0.5
-        )
-        px = np.floor(lm.xy_img).astype(np.int64)
-        on = (px[:, 0] >= 0) & (px[:, 1] >= 0) & (px[:, 0] < w) & (px[:, 1] < h)
-        seen = on & (lm.visibility >= options.min_visibility)
-        if found and (not seen.any() or taken[px[seen, 1], px[seen, 0]].mean() > 0.5):
-            break  # most of it lies on a person already found: nobody new
-        found.append(Detection(landmarks=lm, segmentation=seg))
-        region = seg | _landmark_region(lm, (h, w))
-        ys, xs = np.nonzero(region)
-        size = max(np.ptp(xs), np.ptp(ys)) if len(xs) else 0
-        grow = 2 * int(0.05 * size) + 1
-        grown = cv2.dilate(region.astype(np.uint8), np.ones((grow, grow), np.uint8))
-        taken |= grown.astype(bool)
-        work[taken] = GREY
-    return found
+    """Every person BlazePose finds in an RGB image, best detection first."""
+    found = blazepose.find_people(
+        pose,
+        image_rgb,
+        min_score=options.min_detection_confidence,
+        max_people=options.max_people,
+        levels=options.detector_levels,
+    )
+    return [
+        Detection(landmarks=p.landmarks, segmentation=blazepose.segmentation_mask(p))
+        for p in found
+    ]
 
 
 def _shape_name(shape: tuple[int, int, float]) -> str:
