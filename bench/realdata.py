@@ -96,6 +96,7 @@ def run_instant(
     work: Path,
     priors_dir: Path,
     augment_args: tuple[str, ...] = (),
+    priors_args: tuple[str, ...] = (),
 ) -> tuple[Metrics, dict]:
     """Database (images in the given order), priors (cached), augment, map, eval."""
     db = work / "database.db"
@@ -110,6 +111,7 @@ def run_instant(
                 "--database",
                 str(db),
                 "--no-progress",
+                *priors_args,
             ]
         )
         if code != 0:
@@ -190,10 +192,16 @@ def main() -> None:
     parser.add_argument(
         "--augment-args", default="", help="extra `colmap-vc augment` arguments"
     )
+    parser.add_argument(
+        "--priors-args", default="", help="extra `colmap-vc priors` arguments"
+    )
+    parser.add_argument(
+        "--out", default="realdata", help="folder under bench/out (priors cache)"
+    )
     args = parser.parse_args()
     setup_logging()
     t_start = time.perf_counter()
-    out = OUT / "realdata"
+    out = OUT / args.out
     results: dict[str, dict] = {}
     for ds in args.datasets:
         data = SHARED / f"pose2sim_{ds}"
@@ -222,6 +230,7 @@ def main() -> None:
                     work,
                     priors_dir,
                     tuple(args.augment_args.split()),
+                    tuple(args.priors_args.split()),
                 )
                 per_order.setdefault(k, {})[instant] = m
                 info[f"{instant}/order{k}"] = {**t, "order": order}

@@ -56,6 +56,18 @@ class KeypointBaOptions:
     """Keypoint tracks seen by fewer registered images are left out."""
     surface_seed: int = 0
     """Seed of the surface subset."""
+    check_cameras: bool = True
+    """Check every camera against keypoint points that other cameras triangulate
+    (module doc of :func:`check_cameras_inplace`): re-pose it by PnP where it
+    disagrees, leave it out where nothing fits. A wrong camera is worse than none."""
+    max_check_ratio: float = 2.5
+    """A camera disagrees when its keypoints miss the others' points by more than
+    this times the median camera's error (and the loss scale). Correct cameras stay
+    within 2x the median camera on pose2sim (10-28 px at 1920 px, MediaPipe's
+    landmark noise is 10-15 px); a camera on the mirror side of a person whose prior
+    is turned front to back misses by about 3x (37-52 px)."""
+    min_check_points: int = 10
+    """Keypoint points a check needs (about half a person)."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -89,6 +101,8 @@ class KeypointBaSummary:
     num_surface_observations: int  # kept
     num_surface_observations_dropped: int
     elapsed_s: float
+    relocalised: tuple[str, ...] = ()  # images re-posed by the camera check
+    left_out: dict[str, str] | None = None  # image name -> why it was deregistered
 
 
 def person_identities(
@@ -310,12 +324,18 @@ def keypoint_bundle_adjustment(
             track.add_element(int(tracks.image_id[o]), int(tracks.point2D_idx[o]))
         out.add_point3D(X[t], track)
     bundle_adjust_inplace(out, options.loss_scale_px)
+    relocalised: list[str] = []
+    left_out: dict[str, str] = {}
+    if options.check_cameras:
+        relocalised, left_out = check_cameras_inplace(out, tracks, options)
     summary = KeypointBaSummary(
         num_tracks=int(good.sum()),
         num_keypoint_observations=num_kp_obs,
         num_surface_observations=int(sum(vc_obs)) - dropped,
         num_surface_observations_dropped=dropped,
         elapsed_s=time.perf_counter() - t0,
+        relocalised=tuple(relocalised),
+        left_out=left_out,
     )
     logger.info(
         "keypoint BA: %d keypoint tracks (%d observations), %d surface-VC "
@@ -327,3 +347,146 @@ def keypoint_bundle_adjustment(
         summary.elapsed_s,
     )
     return out, summary
+
+
+def _subset(tracks: KeypointTracks, keep: np.ndarray) -> KeypointTracks:
+    return KeypointTracks(
+        track=tracks.track[keep],
+        image_id=tracks.image_id[keep],
+        point2D_idx=tracks.point2D_idx[keep],
+        xy_img=tracks.xy_img[keep],
+    )
+
+
+def _residuals_px(
+    camera: pycolmap.Camera, cam_from_world: FloatArray, xy: FloatArray, X: FloatArray
+) -> FloatArray:
+    """Reprojection errors (N,) of points X (N, 3) against pixels xy (N, 2)."""
+    Xc = X @ cam_from_world[:, :3].T + cam_from_world[:, 3]
+    err = np.full(len(X), np.inf)
+    front = Xc[:, 2] > 1e-6
+    if front.any():
+        proj = np.asarray(camera.img_from_cam(Xc[front]))
+        err[front] = np.linalg.norm(proj - xy[front], axis=1)
+    return err
+
+
+def _best_two_view_check(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    image_id: int,
+    others: list[int],
+    min_points: int,
+) -> tuple[float, FloatArray, FloatArray]:
+    """The smallest median error of image ``image_id``'s keypoints against the
+    points any two other cameras triangulate, with those 2D-3D correspondences."""
+    mine = tracks.image_id == image_id
+    best = (np.inf, np.zeros((0, 2)), np.zeros((0, 3)))
+    if not mine.any():
+        return best
+    image = rec.image(image_id)
+    camera = rec.camera(image.camera_id)
+    pose = image.cam_from_world().matrix()
+    for a, j in enumerate(others):  # loop over image pairs (a few dozen at most)
+        for k in others[a + 1 :]:
+            sub = _subset(tracks, np.isin(tracks.image_id, [j, k]))
+            X, counts = triangulate_tracks(rec, sub)
+            pad = tracks.num_tracks - len(X)
+            X = np.r_[X, np.full((max(pad, 0), 3), np.nan)]
+            counts = np.r_[counts, np.zeros(max(pad, 0), np.int64)]
+            t = tracks.track[mine]
+            ok = (counts[t] == 2) & np.isfinite(X[t]).all(axis=1)
+            if ok.sum() < min_points:
+                continue
+            xy, pts = tracks.xy_img[mine][ok], X[t[ok]]
+            med = float(np.median(_residuals_px(camera, pose, xy, pts)))
+            if med < best[0]:
+                best = (med, xy, pts)
+    return best
+
+
+def check_cameras_inplace(
+    rec: pycolmap.Reconstruction, tracks: KeypointTracks, options: KeypointBaOptions
+) -> tuple[list[str], dict[str, str]]:
+    """Each camera against keypoint points two *other* cameras triangulate.
+
+    A camera whose keypoints miss the points of every pair of other cameras (the
+    best pair's median error above ``max_check_ratio`` times the median camera's)
+    contradicts the rest: a prior turned front to back puts its camera on the
+    mirror side, consistently in every pair and cycle, and only the people's
+    asymmetric 3D pose shows it. It is re-posed by PnP on the best pair's points
+    when that fits as well as the other cameras do, else left out. Needs 4+
+    cameras (with 3, two cameras always agree with each other). Cameras are
+    visited in name order, worst first. Returns (re-posed names, left out: reason).
+    """
+    relocalised: list[str] = []
+    left_out: dict[str, str] = {}
+    while True:
+        reg = sorted(
+            (i for i, im in rec.images.items() if im.has_pose),
+            key=lambda i: rec.image(i).name,  # name order, never the ids
+        )
+        if len(reg) < 4:
+            break
+        # The 6 cameras sharing most keypoints are enough witnesses.
+        obs = {i: set(tracks.track[tracks.image_id == i].tolist()) for i in reg}
+        checks = {}
+        for i in reg:
+            others = sorted(
+                (j for j in reg if j != i),
+                key=lambda j: (-len(obs[i] & obs[j]), rec.image(j).name),
+            )[:6]
+            checks[i] = _best_two_view_check(
+                rec, tracks, i, others, options.min_check_points
+            )
+        errs = {i: c[0] for i, c in checks.items() if np.isfinite(c[0])}
+        if len(errs) < 4:
+            break
+        logger.debug(
+            "camera check: %s",
+            {rec.image(i).name: round(e, 1) for i, e in errs.items()},
+        )
+        worst = max(errs, key=lambda i: (errs[i], rec.image(i).name))
+        typical = float(np.median([e for i, e in errs.items() if i != worst]))
+        limit = max(options.max_check_ratio * typical, options.loss_scale_px)
+        if errs[worst] <= limit:
+            break
+        image = rec.image(worst)
+        name = image.name
+        if name in relocalised or name in left_out:
+            break
+        _, xy, pts = checks[worst]
+        camera = rec.camera(image.camera_id)
+        est = pycolmap.AbsolutePoseEstimationOptions()
+        est.ransac.max_error = options.loss_scale_px
+        est.ransac.random_seed = options.surface_seed
+        found = pycolmap.estimate_and_refine_absolute_pose(xy, pts, camera, est)
+        pnp = np.inf
+        if found is not None and found["num_inliers"] >= options.min_check_points:
+            pnp = float(
+                np.median(
+                    _residuals_px(camera, found["cam_from_world"].matrix(), xy, pts)
+                )
+            )
+        if pnp <= limit:
+            rec.frame(image.frame_id).rig_from_world = found["cam_from_world"]
+            logger.warning(
+                "camera check: %s re-posed by PnP on the keypoints two other cameras "
+                "triangulate (median error %.0f px -> %.0f px; the median camera's "
+                "%.0f px)",
+                name,
+                errs[worst],
+                pnp,
+                typical,
+            )
+            relocalised.append(name)
+        else:
+            left_out[name] = (
+                f"left out: its keypoints miss the points the other cameras "
+                f"triangulate (median {errs[worst]:.0f} px, the median camera "
+                f"{typical:.0f} px) and no pose fits them"
+            )
+            logger.warning("camera check: %s %s", name, left_out[name])
+            rec.deregister_frame(image.frame_id)
+        bundle_adjust_inplace(rec, options.loss_scale_px)
+    return relocalised, left_out

@@ -555,16 +555,19 @@ def run(
                 "the incremental model agrees with the mesh prior (median %.0f deg)",
                 deviation,
             )
+    left_out: dict[str, str] = {}
     if best is not None and options.keypoint_ba:
-        best, _ = keypoint_bundle_adjustment(
+        best, kba = keypoint_bundle_adjustment(
             database_path, best, options.keypoint_ba_options
         )
         models[best_key] = best
-    left_out: dict[str, str] = {}
+        left_out.update(kba.left_out or {})
     if best is not None and priors is not None:
         # On the final poses: the keypoint BA can carry a camera far from its start.
-        left_out = leave_out_prior_outliers_inplace(
-            best, priors, options.max_image_prior_deviation_deg
+        left_out.update(
+            leave_out_prior_outliers_inplace(
+                best, priors, options.max_image_prior_deviation_deg
+            )
         )
         if left_out:
             bundle_adjust_inplace(best, options.keypoint_ba_options.loss_scale_px)

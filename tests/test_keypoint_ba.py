@@ -96,3 +96,57 @@ def test_keypoint_ba_pulls_perturbed_poses_back(dome_scene, mapped, rng):
     assert evaluate_reconstruction(out, gt).median_error_deg < max(1.0, 2 * before)
     for i, im in perturbed.images.items():  # the input is not modified
         assert np.array_equal(im.cam_from_world().matrix(), snapshot[i])
+
+
+def _tracks_from_points(rec, points, rng, noise_px=1.0):
+    """Keypoint tracks of 3D points seen by every camera of ``rec``."""
+    from colmap_vc.keypoint_ba import KeypointTracks
+
+    track, image_id, xy = [], [], []
+    for i, image in sorted(rec.images.items()):
+        T = image.cam_from_world().matrix()
+        uv = rec.camera(image.camera_id).img_from_cam(points @ T[:, :3].T + T[:, 3])
+        track.append(np.arange(len(points)))
+        image_id.append(np.full(len(points), i))
+        xy.append(np.asarray(uv) + rng.normal(0, noise_px, (len(points), 2)))
+    order = np.argsort(np.concatenate(track), kind="stable")
+    t, im, p = (np.concatenate(a)[order] for a in (track, image_id, xy))
+    return KeypointTracks(track=t, image_id=im, point2D_idx=np.zeros_like(t), xy_img=p)
+
+
+@pytest.mark.parametrize("keypoints", ["right", "garbage"])
+def test_camera_check_re_poses_or_leaves_out_a_wrong_camera(dome_scene, rng, keypoints):
+    """A camera turned 40 deg: re-posed by PnP when its keypoints are right, left
+    out when they fit nothing; the other cameras are untouched."""
+    from scipy.spatial.transform import Rotation
+
+    from colmap_vc.keypoint_ba import KeypointBaOptions, check_cameras_inplace
+
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    points = rng.normal(0, 0.4, (30, 3)) * [1, 2, 1] + [0, -0.9, 0]  # a body's extent
+    tracks = _tracks_from_points(rec, points, rng)
+    name = sorted(im.name for im in rec.images.values())[1]
+    image = rec.find_image_with_name(name)
+    if keypoints == "garbage":
+        mine = tracks.image_id == image.image_id
+        tracks.xy_img[mine] = rng.permutation(tracks.xy_img[mine])
+    truth = {im.name: im.cam_from_world().matrix() for im in rec.images.values()}
+    T = truth[name]
+    turn = Rotation.from_euler("y", 40, degrees=True).as_matrix()
+    rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(turn @ T[:, :3]), turn @ T[:, 3]
+    )
+    relocalised, left_out = check_cameras_inplace(
+        rec, tracks, KeypointBaOptions(loss_scale_px=4.0)
+    )
+    if keypoints == "right":
+        assert relocalised == [name] and not left_out
+        got = rec.find_image_with_name(name).cam_from_world().matrix()
+        assert np.abs(got[:, :3] @ T[:, :3].T - np.eye(3)).max() < 0.02
+    else:
+        assert relocalised == [] and list(left_out) == [name]
+        assert not rec.find_image_with_name(name).has_pose
+    for other in truth:
+        if other != name:  # the others stay where they were (to BA noise)
+            got = rec.find_image_with_name(other).cam_from_world().matrix()
+            assert np.abs(got[:, :3] @ truth[other][:, :3].T - np.eye(3)).max() < 0.02
