@@ -36,11 +36,10 @@ chromium:
 	      || echo "could not install Debian's chromium: the report screenshot test will skip"; \
 	  else echo "not root or no apt-get: the report screenshot test will skip"; fi; }
 
-# Optional MediaPipe estimator (colmap-vc priors). --no-deps: its metadata pulls a
-# second, non-headless OpenCV plus jax and sounddevice, which pose estimation never uses.
+# Optional prior estimator (colmap-vc priors): MediaPipe 0.10.14's BlazePose models ship
+# inside colmap-vc, ai-edge-litert runs them; MediaPipe itself is not installed.
 mediapipe: $(STAMP)
-	$(PY) -m pip install -q --no-deps mediapipe==0.10.14
-	$(PY) -m pip install -q absl-py attrs flatbuffers "protobuf>=4.25.3,<5" ai-edge-litert
+	$(PY) -m pip install -q -e ".[test,viz,mediapipe]"
 
 # Fast tests (slow end-to-end checks are marked and run by test-all / .ci/run).
 test: $(STAMP) colmap38 chromium
@@ -71,7 +70,7 @@ bodies:
 	@test -x .venv-bodies/bin/python || $(PYTHON) -m venv .venv-bodies
 	.venv-bodies/bin/pip install -q torch==2.13.0
 	.venv-bodies/bin/pip install -q anny==0.6.2 trimesh numpy
-	.venv-bodies/bin/python scripts/export_bodies.py --out data/synthetic/bodies
+	.venv-bodies/bin/python scripts/export_bodies.py --out colmap_vc/data
 
 synthetic: bodies
 

@@ -97,6 +97,17 @@ def match(dets: list[body.BodyLandmarks], labels: list[dict]) -> list[int | None
     return out
 
 
+def _has_mediapipe() -> bool:
+    import importlib.util
+
+    return importlib.util.find_spec("mediapipe") is not None
+
+
+# The legacy row (MediaPipe's own repaint-and-rerun solution) needs
+# `pip install --no-deps mediapipe==0.10.14`; colmap-vc itself no longer does.
+METHODS = (("legacy",) if _has_mediapipe() else ()) + ("blazepose2", "blazepose3")
+
+
 def run(method: str, dataset: str, labels: dict[str, list[dict]]) -> dict:
     levels = int(method[-1]) if method.startswith("blazepose") else 1
     options = EstimatorOptions(detector_levels=levels)
@@ -149,7 +160,7 @@ def main() -> None:
     doc = json.loads(LABELS.read_text())
     results: dict[str, dict] = {}
     for dataset in ("pose2sim_single", "pose2sim_multi"):
-        for method in ("legacy", "blazepose2", "blazepose3"):
+        for method in METHODS:
             r = run(method, dataset, doc[dataset])
             results[f"{dataset}/{method}"] = r
             print(

@@ -3,7 +3,7 @@
 Needs torch and anny (kept out of the core venv)::
 
     make bodies
-    # or: .venv-bodies/bin/python scripts/export_bodies.py --out data/synthetic/bodies
+    # or: .venv-bodies/bin/python scripts/export_bodies.py --out colmap_vc/data
 
 Writes ``anny_bodies.npz`` and ``anny_bodies.json`` (see data/synthetic/bodies/README.md
 and colmap_vc/synthetic/bodies.py for the format). Deterministic: the same anny version

@@ -8,7 +8,7 @@ import trimesh
 
 from colmap_vc.synthetic import bodies as body_lib
 
-# From data/synthetic/bodies/anny_bodies.json ("validation"): numpy LBS with 4 fitted
+# From colmap_vc/data/anny_bodies.json ("validation"): numpy LBS with 4 fitted
 # weights vs Anny's own skinning, max 4.5 mm and mean 0.015 mm over all 48 meshes.
 LBS_MAX_M = 6e-3
 LBS_MEAN_M = 1e-4

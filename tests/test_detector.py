@@ -98,7 +98,6 @@ def _load_image(dataset: str, name: str) -> np.ndarray:
 
 @pytest.fixture(scope="module")
 def model():
-    pytest.importorskip("mediapipe")
     pytest.importorskip("ai_edge_litert")
     if not DATA.is_dir():
         pytest.skip(f"{DATA} not available")

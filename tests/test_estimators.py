@@ -194,7 +194,7 @@ def _pose2sim_cameras() -> dict[str, pycolmap.Camera]:
 
 @pytest.fixture(scope="module")
 def mediapipe_run(tmp_path_factory: pytest.TempPathFactory):
-    pytest.importorskip("mediapipe")
+    pytest.importorskip("ai_edge_litert")
     if not POSE2SIM.is_dir():
         pytest.skip(f"{POSE2SIM} not available")
     from colmap_vc.estimators import run_estimator
@@ -266,7 +266,7 @@ def test_mediapipe_skips_bad_images_with_a_reason(mediapipe_run):
 def test_pose2sim_one_instant_end_to_end(tmp_path):
     """priors -> augment -> map on the 4 photos of one instant: every camera registers
     and the relative poses are near the calibration (classic COLMAP registers none)."""
-    pytest.importorskip("mediapipe")
+    pytest.importorskip("ai_edge_litert")
     if not POSE2SIM.is_dir():
         pytest.skip(f"{POSE2SIM} not available")
     from colmap_vc import augment, mapping

@@ -24,9 +24,9 @@ OpenCV's warps index pixel centres at integers, hence the 0.5 shifts.
 from __future__ import annotations
 
 import functools
-import importlib.util
 import logging
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 from typing import Any
 
@@ -85,16 +85,14 @@ class PoseResult:
 
 
 def models_dir() -> Path:
-    """The ``mediapipe/modules`` folder of the installed MediaPipe wheel (found
-    without importing MediaPipe: only its model files are used)."""
-    spec = importlib.util.find_spec("mediapipe")
-    if spec is None or not spec.submodule_search_locations:
-        raise ImportError(
-            "the MediaPipe estimator needs the models of mediapipe 0.10.14: "
-            "pip install --no-deps mediapipe==0.10.14 and pip install ai-edge-litert "
-            "(see docs/real-data.md)"
-        )
-    return Path(next(iter(spec.submodule_search_locations))) / "modules"
+    """MediaPipe 0.10.14's two BlazePose models, as shipped inside colmap-vc.
+
+    They are copied byte for byte from the ``mediapipe==0.10.14`` wheel
+    (``mediapipe/modules/{pose_detection,pose_landmark}``; Apache-2.0, see
+    ``models/LICENSE``): MediaPipe itself is not needed to run them, and its wheel
+    would pull a second, non-headless OpenCV, jax and sounddevice into the install.
+    """
+    return Path(str(files("colmap_vc.estimators") / "models"))
 
 
 def _interpreter(path: Path) -> Any:

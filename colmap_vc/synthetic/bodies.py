@@ -1,6 +1,6 @@
 """Articulated human bodies exported from Anny: loader and numpy poser (no torch).
 
-The bodies live in ``data/synthetic/bodies/anny_bodies.{npz,json}`` (written by
+The bodies live in ``colmap_vc/data/anny_bodies.{npz,json}`` (package data, written by
 ``scripts/export_bodies.py``, see the README there). All bodies share one triangle
 topology, so a surface point named by (face, barycentric coordinates) is the same point
 of the body for every phenotype and pose.
@@ -21,6 +21,7 @@ from __future__ import annotations
 import json
 import logging
 from dataclasses import dataclass
+from importlib.resources import files
 from pathlib import Path
 
 import numpy as np
@@ -29,14 +30,9 @@ from colmap_vc.structs import FloatArray, IndexArray
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_PATH = (
-    Path(__file__).resolve().parents[2]
-    / "data"
-    / "synthetic"
-    / "bodies"
-    / "anny_bodies.npz"
-)
-"""<repo>/data/synthetic/bodies/anny_bodies.npz, next to its JSON description."""
+DEFAULT_PATH = Path(str(files("colmap_vc") / "data" / "anny_bodies.npz"))
+"""The package's own ``colmap_vc/data/anny_bodies.npz`` (package data, so a plain
+``pip install`` has it), next to its JSON description."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -130,7 +126,8 @@ def load_bodies(path: Path | None = None) -> BodyModel:
         if not p.is_file():
             raise FileNotFoundError(
                 f"body file {p} not found; regenerate it with `make bodies` "
-                "(see data/synthetic/bodies/README.md)"
+                "(see data/synthetic/bodies/README.md); a broken install? "
+                "reinstall colmap-vc"
             )
     info = json.loads(json_path.read_text())
     with np.load(path, allow_pickle=False) as z:
