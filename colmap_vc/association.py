@@ -84,7 +84,7 @@ class PersonCue:
     person_id: int | None  # the priors' identity, when given
     vertices_cam: FloatArray  # (V, 3) metres, this camera's frame
     appearance: FloatArray | None = None  # (R, 4): Lab colour + weight per region
-    group: str = ""  # people of different groups (instants) never match
+    group: str = ""  # instant: people of different instants never match ("": any)
 
     @property
     def key(self) -> PersonKey:
@@ -343,8 +343,8 @@ def associate(
     for lk in links:
         c1 = by_key[(lk.image_name1, lk.person1)]
         c2 = by_key[(lk.image_name2, lk.person2)]
-        if c1.group != c2.group:
-            continue
+        if c1.group and c2.group and c1.group != c2.group:
+            continue  # people of different instants are different people
         per_pair.setdefault((lk.image_name1, lk.image_name2), []).append(lk)
 
     chosen: list[tuple[float, tuple[str, str], LinkEvidence]] = []

@@ -7,10 +7,11 @@ result in one transaction (or only reports, with ``dry_run``).
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import logging
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -39,6 +40,7 @@ from .matching import (
     template_key,
 )
 from .priors import read_priors
+from .static_cameras import merge_priors, parse_static_cameras
 from .structs import (
     FloatArray,
     HitKind,
@@ -84,6 +86,11 @@ class AugmentOptions:
     max_cycle_error_deg: float = 35.0
     """A verified pair whose rotation breaks most of the view triplets it closes by
     more than this is dropped (sqrt(3) x the one-pair pose noise of 20 deg)."""
+    static_cameras: str | None = None
+    """Images from static cameras: a regular expression whose first capturing
+    group, searched in the image name, names the physical camera (e.g.
+    '(cam\\d+)_'); each camera then has one pose constrained by every instant, and
+    people of different instants never match (docs/real-data.md)."""
     dry_run: bool = False
     """Compute and report, write nothing."""
     show_progress: bool = True
@@ -165,16 +172,32 @@ def observe_image(
     camera: pycolmap.Camera,
     samples: Mapping[str, TemplateSamples],
     options: MatchingOptions,
+    groups: Sequence[str] | None = None,
 ) -> tuple[ImagePrior, list[PersonObservations]]:
-    """The re-posed priors of one image and the observations of every person."""
+    """The re-posed priors of one image and the observations of every person.
+
+    ``groups`` (one per person): people occlude only people of their own group
+    (instant), for a static camera's view that holds several instants.
+    """
     prior = refit_image_prior(priors.images[image_name], camera, options)
-    others = None
-    if len(prior.persons) > 1 and options.people_occlude:
-        others = raycast.build_scene([(p.vertices_cam, p.faces) for p in prior.persons])
-    return prior, [
-        observe_person(prior, k, camera, samples[template_key(p)], options, others)
-        for k, p in enumerate(prior.persons)
-    ]
+    groups = groups or [""] * len(prior.persons)
+    out = []
+    for group in sorted(set(groups)):  # loop over instants of the view
+        members = [k for k, g in enumerate(groups) if g == group]
+        sub = dataclasses.replace(
+            prior, persons=tuple(prior.persons[k] for k in members)
+        )
+        others = None
+        if len(members) > 1 and options.people_occlude:
+            others = raycast.build_scene(
+                [(p.vertices_cam, p.faces) for p in sub.persons]
+            )
+        for j, k in enumerate(members):
+            obs = observe_person(
+                sub, j, camera, samples[template_key(sub.persons[j])], options, others
+            )
+            out.append((k, dataclasses.replace(obs, person_index=k)))
+    return prior, [obs for _, obs in sorted(out, key=lambda kv: kv[0])]
 
 
 def _concat(matches: list[tuple[int, int, PersonMatches]]) -> tuple[IndexArray, ...]:
@@ -298,7 +321,7 @@ def _link_evidence(
 
 
 def _person_cues(
-    name: str, prior: ImagePrior, obs: list[PersonObservations], group: str = ""
+    name: str, prior: ImagePrior, groups: Sequence[str] | None = None
 ) -> list[PersonCue]:
     return [
         PersonCue(
@@ -307,7 +330,7 @@ def _person_cues(
             person_id=p.person_id,
             vertices_cam=p.vertices_cam,
             appearance=p.appearance,
-            group=group,
+            group=groups[k] if groups else "",
         )
         for k, p in enumerate(prior.persons)
     ]
@@ -448,6 +471,7 @@ def compute_virtual_correspondences(
     classic_matches: Mapping[Pair, IndexArray] | None = None,
     timings: dict[str, float] | None = None,
     solved_pairs: set[Pair] | None = None,
+    person_groups: Mapping[tuple[str, int], str] | None = None,
 ) -> VirtualCorrespondences:
     """Find, associate and verify VCs for every pair of images with priors.
 
@@ -459,6 +483,8 @@ def compute_virtual_correspondences(
         classic_matches: raw classic matches (M, 2) by pair (id1 < id2).
         timings: filled with seconds per stage when given.
         solved_pairs: pairs (id1 < id2) classic matching already solved: no VCs.
+        person_groups: (image name, person index) -> instant; people of different
+            instants never match (static cameras, :mod:`colmap_vc.static_cameras`).
     """
     options = options or AugmentOptions()
     timings = timings if timings is not None else {}
@@ -492,10 +518,16 @@ def compute_virtual_correspondences(
         names, desc="observe", disable=not options.show_progress, leave=False
     ):
         camera = views.cameras[int(views.camera_ids[name_to_idx[name]])]
+        groups = None
+        if person_groups:
+            groups = [
+                person_groups.get((name, k), "")
+                for k in range(len(priors.images[name].persons))
+            ]
         prior, observations[name] = observe_image(
-            priors, name, camera, samples, options.matching
+            priors, name, camera, samples, options.matching, groups
         )
-        cues += _person_cues(name, prior, observations[name])
+        cues += _person_cues(name, prior, groups)
     timings["observe"] = time.perf_counter() - t0
 
     def camera_of(name: str) -> pycolmap.Camera:
@@ -741,8 +773,15 @@ def run(
     priors = read_priors(
         Path(priors_path), known_image_names=views.image_names, image_sizes=sizes
     )
+    static = None
+    groups: dict[tuple[str, int], str] | None = None
+    if options.static_cameras:
+        static = parse_static_cameras(options.static_cameras, views.image_names)
+        priors, groups = merge_priors(priors, static)
     for name in views.image_names:
-        if name not in priors.images:
+        if name not in priors.images and (
+            static is None or static.representative_of(name) == name
+        ):
             logger.warning("no priors for image %s: skipped", name)
     with_priors = [
         int(i)
@@ -768,8 +807,23 @@ def run(
             )
     timings["read"] = time.perf_counter() - t0
     vcs = compute_virtual_correspondences(
-        views, priors, options, classic_kp, classic_m, timings, solved_pairs=solved
+        views,
+        priors,
+        options,
+        classic_kp,
+        classic_m,
+        timings,
+        solved_pairs=solved,
+        person_groups=groups,
     )
+    if static is not None:
+        for name in views.image_names:
+            rep = static.representative_of(name)
+            if rep != name:
+                vcs.skipped_images[name] = (
+                    f"static camera {static.camera_of[name]}: its people are in "
+                    f"{rep}'s view, which stands for every instant of the camera"
+                )
     write = None
     if not options.dry_run:
         t0 = time.perf_counter()

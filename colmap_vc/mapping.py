@@ -13,6 +13,7 @@ import enum
 import logging
 import shutil
 import time
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
@@ -29,6 +30,7 @@ from .keypoint_ba import (
 )
 from .meshalign import mesh_alignment_poses
 from .priors import read_priors
+from .static_cameras import StaticCameras, merge_priors, parse_static_cameras
 from .structs import ScenePriors
 
 logger = logging.getLogger(__name__)
@@ -67,6 +69,10 @@ class MappingOptions:
     """Refine focal length and distortion (off: the intrinsics are known)."""
     num_threads: int = -1
     """Threads (-1: all cores)."""
+    static_cameras: str | None = None
+    """Images from static cameras (the regular expression of `augment
+    --static-cameras`; default: what augment recorded): one pose per physical
+    camera, given to every image of that camera."""
     seed: int = 0
     """Seed of COLMAP's randomness (pycolmap.set_random_seed)."""
     min_num_matches: int = 15
@@ -482,10 +488,16 @@ def run(
     output_dir.mkdir(parents=True, exist_ok=True)
     views = database.read_views(database_path)
     num_images = len(views.image_names)
+    static = _static_cameras(options, database_path, views.image_names)
+    mapped = (
+        list(views.image_names)
+        if static is None
+        else sorted({*static.representative.values(), *static.unmatched})
+    )
     pycolmap.set_random_seed(options.seed)
     t0 = time.perf_counter()
-    priors = _load_priors(database_path, priors_path, views.image_names)
-    if num_images == 2 and options.mapper in (Mapper.AUTO, Mapper.INCREMENTAL):
+    priors = _load_priors(database_path, priors_path, views.image_names, static)
+    if len(mapped) == 2 and options.mapper in (Mapper.AUTO, Mapper.INCREMENTAL):
         rec = two_view_initialised(
             database_path, image_dir, output_dir / "0", options, priors
         )
@@ -510,19 +522,22 @@ def run(
         def on_next() -> None:
             registered[0] += 1
             if options.show_progress:
-                logger.info("registered image %d/%d", registered[0] + 2, num_images)
+                logger.info("registered image %d/%d", registered[0] + 2, len(mapped))
 
+        pipeline = incremental_options(options)
+        if static is not None:
+            pipeline.image_names = mapped  # one view per static camera
         models = pycolmap.incremental_mapping(
             database_path,
             image_dir,
             output_dir,
-            options=incremental_options(options),
+            options=pipeline,
             initial_image_pair_callback=on_init,
             next_image_callback=on_next,
         )
     best_key = max(models, key=lambda k: models[k].num_reg_images(), default=None)
     best = None if best_key is None else models[best_key]
-    if options.mapper is Mapper.AUTO and priors is not None and num_images > 2:
+    if options.mapper is Mapper.AUTO and priors is not None and len(mapped) > 2:
         deviation = 180.0 if best is None else prior_deviation_deg(best, priors)
         placeable = len(
             mesh_alignment_poses(priors, image_names=set(views.image_names))
@@ -571,7 +586,9 @@ def run(
         )
         if left_out:
             bundle_adjust_inplace(best, options.keypoint_ba_options.loss_scale_px)
-    if best is not None and (options.keypoint_ba or left_out):
+    if best is not None and static is not None:
+        add_static_members_inplace(best, static, views)
+    if best is not None and (options.keypoint_ba or left_out or static is not None):
         best.write(output_dir / str(best_key))
     elapsed = time.perf_counter() - t0
     reasons = {**_why_unregistered(database_path, best), **left_out}
@@ -600,8 +617,45 @@ def run(
     return best, summary
 
 
+def _static_cameras(
+    options: MappingOptions, database_path: Path, image_names: Sequence[str]
+) -> StaticCameras | None:
+    """The static cameras given, else those `augment` recorded, else None."""
+    pattern = options.static_cameras
+    if pattern is None:
+        recorded = database.read_run_info(database_path).get("options", {})
+        pattern = recorded.get("static_cameras") if isinstance(recorded, dict) else None
+    return None if not pattern else parse_static_cameras(pattern, image_names)
+
+
+def add_static_members_inplace(
+    rec: pycolmap.Reconstruction, static: StaticCameras, views: database.DatabaseViews
+) -> None:
+    """Every image of a registered static camera gets its representative's pose."""
+    camera_of = dict(zip(views.image_names, views.camera_ids.tolist(), strict=True))
+    id_of = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
+    for rep in sorted(static.representative.values()):
+        image = rec.find_image_with_name(rep)
+        if image is None or not image.has_pose:
+            continue
+        pose = image.cam_from_world()
+        for name in static.members(rep):
+            if name == rep or rec.find_image_with_name(name) is not None:
+                continue
+            camera_id = int(camera_of[name])
+            if camera_id not in rec.cameras:
+                rec.add_camera_with_trivial_rig(views.cameras[camera_id])
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=name, camera_id=camera_id, image_id=id_of[name]),
+                pycolmap.Rigid3d(pose.rotation, pose.translation),
+            )
+
+
 def _load_priors(
-    database_path: Path, priors_path: Path | None, image_names: tuple[str, ...]
+    database_path: Path,
+    priors_path: Path | None,
+    image_names: tuple[str, ...],
+    static: StaticCameras | None = None,
 ) -> ScenePriors | None:
     """The priors given, else those `augment` recorded in the database, else None."""
     if priors_path is None:
@@ -610,6 +664,8 @@ def _load_priors(
             return None
         priors_path = Path(recorded)
     priors = read_priors(priors_path, known_image_names=image_names)
+    if static is not None:  # the views augment wrote: one per static camera
+        priors, _ = merge_priors(priors, static)
     return with_associated_ids(priors, database_path)
 
 

@@ -1,0 +1,178 @@
+"""Static cameras: images grouped by physical camera, one view per camera."""
+
+from __future__ import annotations
+
+import dataclasses
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from colmap_vc import cli, database
+from colmap_vc.priors import read_priors, write_priors
+from colmap_vc.static_cameras import merge_priors, parse_static_cameras
+from colmap_vc.structs import ImagePrior, ScenePriors
+
+NAMES = [f"cam{c:02d}_t{t:03d}.jpg" for c in (1, 2, 3) for t in (10, 30)] + ["x.jpg"]
+
+
+def test_cameras_instants_and_unmatched_images() -> None:
+    static = parse_static_cameras(r"(cam\d+)_", NAMES)
+    assert static.representative == {
+        "cam01": "cam01_t010.jpg",
+        "cam02": "cam02_t010.jpg",
+        "cam03": "cam03_t010.jpg",
+    }
+    assert static.instant_of["cam02_t030.jpg"] == "_t030.jpg"
+    assert static.instant_of["cam01_t030.jpg"] == static.instant_of["cam03_t030.jpg"]
+    assert static.unmatched == ("x.jpg",)
+    assert static.members("cam02_t010.jpg") == ["cam02_t010.jpg", "cam02_t030.jpg"]
+    assert static.representative_of("cam03_t030.jpg") == "cam03_t010.jpg"
+    assert static.representative_of("x.jpg") == "x.jpg"
+
+
+@pytest.mark.parametrize(
+    ("pattern", "message"),
+    [
+        ("(cam\\d+", "not a valid regular expression"),
+        ("cam\\d+_", "no capturing group"),
+        ("(view\\d+)_", "matches none of the 7 images"),
+    ],
+)
+def test_bad_expressions_are_refused_clearly(pattern: str, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        parse_static_cameras(pattern, NAMES)
+
+
+def test_merged_views_hold_every_instant_tagged(dome_scene: Path) -> None:
+    priors = read_priors(dome_scene / "priors")
+    names = sorted(priors.images)[:4]
+    # Pretend the first four images are 2 cameras x 2 instants.
+    renamed = {n: f"cam{k // 2:02d}_t{k % 2:03d}.jpg" for k, n in enumerate(names)}
+    scene = ScenePriors(
+        images={
+            renamed[n]: ImagePrior(
+                image_name=renamed[n], persons=priors.images[n].persons
+            )
+            for n in names
+        }
+    )
+    static = parse_static_cameras(r"(cam\d+)_", list(scene.images))
+    merged, groups = merge_priors(scene, static)
+    assert sorted(merged.images) == ["cam00_t000.jpg", "cam01_t000.jpg"]
+    for rep, ip in merged.images.items():
+        members = static.members(rep)
+        assert len(ip.persons) == sum(len(scene.images[m].persons) for m in members)
+        tags = [groups[(rep, k)] for k in range(len(ip.persons))]
+        assert tags == sorted(tags) and len(set(tags)) == 2
+        ids = [p.person_id for p in ip.persons]
+        assert len(set(ids)) == len(ids)  # ids are made unique per instant
+
+
+def test_cli_refuses_a_bad_expression_and_leaves_the_database(
+    dome_scene: Path, tmp_path: Path
+) -> None:
+    db = tmp_path / "database.db"
+    shutil.copyfile(dome_scene / "database.db", db)
+    before = database.table_checksums(db)
+    code = cli.main(
+        [
+            "augment",
+            str(db),
+            "--priors",
+            str(dome_scene / "priors"),
+            "--static-cameras",
+            "(nothing\\d+)_",
+            "--no-show-progress",
+        ]
+    )
+    assert code == 1
+    assert database.table_checksums(db) == before
+
+
+def test_one_pose_per_static_camera_end_to_end(
+    dome_scene: Path, tmp_path: Path
+) -> None:
+    """A 6-view dome seen as 3 'instants' of... the same cameras: copies of each
+    image under a second instant name give the same pose as the first."""
+    import pycolmap
+
+    images = tmp_path / "images"
+    shutil.copytree(dome_scene / "images", images)
+    priors = read_priors(dome_scene / "priors")
+    views = database.read_views(dome_scene / "database.db")
+    names = sorted(views.image_names)
+    # instant 2 of each camera: the same picture (the people did not move)
+    for n in names:
+        shutil.copyfile(images / n, images / n.replace(".jpg", "_t2.jpg"))
+    db = tmp_path / "database.db"
+    camera_of = {
+        n: views.cameras[int(c)]
+        for n, c in zip(views.image_names, views.camera_ids, strict=True)
+    }
+    all_names = sorted([*names, *(n.replace(".jpg", "_t2.jpg") for n in names)])
+    for name in all_names:
+        cam = camera_of[name.replace("_t2", "")]
+        pycolmap.extract_features(
+            db,
+            images,
+            image_names=[name],
+            camera_mode=pycolmap.CameraMode.PER_IMAGE,
+            reader_options=pycolmap.ImageReaderOptions(
+                camera_model=cam.model.name,
+                camera_params=",".join(f"{p:.17g}" for p in cam.params),
+            ),
+            extraction_options=pycolmap.FeatureExtractionOptions(num_threads=1),
+            device=pycolmap.Device.cpu,
+        )
+    pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+    anonymous = {
+        n: ImagePrior(
+            image_name=n,
+            persons=tuple(
+                dataclasses.replace(p, person_id=None)
+                for p in priors.images[n.replace("_t2", "")].persons
+            ),
+        )
+        for n in all_names
+    }
+    write_priors(ScenePriors(images=anonymous), tmp_path / "priors")
+    pattern = r"^(cam\d+)"
+    assert (
+        cli.main(
+            [
+                "augment",
+                str(db),
+                "--priors",
+                str(tmp_path / "priors"),
+                "--static-cameras",
+                pattern,
+                "--no-show-progress",
+            ]
+        )
+        == 0
+    )
+    assert (
+        cli.main(
+            [
+                "map",
+                str(db),
+                "--image-path",
+                str(images),
+                "--output-path",
+                str(tmp_path / "sparse"),
+                "--no-show-progress",
+            ]
+        )
+        == 0
+    )
+    rec = pycolmap.Reconstruction(tmp_path / "sparse" / "0")
+    poses = {
+        im.name: im.cam_from_world().matrix()
+        for im in rec.images.values()
+        if im.has_pose
+    }
+    assert sorted(poses) == all_names  # every input image is in the model
+    for n in names:
+        assert np.allclose(poses[n], poses[n.replace(".jpg", "_t2.jpg")])
