@@ -17,14 +17,17 @@ decides identities jointly from three kinds of evidence:
 - **global**: links are merged strongest first into identities (union-find) that
   never hold two people of one image (cycle consistency by construction).
 
-Per image pair the best set of mutually consistent links is the pair's hypothesis;
-when the best hypothesis does not beat the best contradicting one by a margin, the
-pair's people stay unassociated there (left out, not guessed). Identities given in
+All evidence is a log-likelihood ratio. Per image pair, link sets are grown greedily
+from every seed link (the link that raises the score most joins, while it does); a
+link is kept when the best set holding it beats the best set without it by
+``min_link_margin``, else that person stays unassociated in that pair (left out, not
+guessed; transitivity through other views may still link it). Identities given in
 the priors win. Nothing is factorial: a pair with n and m people costs n m link
-verifications and O((n m)^2) comparisons.
+verifications and O((n m)^3) arithmetic.
 
 The noise scales (degrees, metres, colour units) are the measured noise of the
-quantity they scale; docs/results.md ("association") states where each comes from.
+quantity they scale; each option's docstring says where it comes from, and
+docs/real-data.md ("Several people") sums them up.
 """
 
 from __future__ import annotations

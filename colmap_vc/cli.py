@@ -109,6 +109,24 @@ class Priors:
 
 
 @dataclass(frozen=True)
+class Frames:
+    """Synchronized frames of static cameras' videos, where the people moved."""
+
+    videos: tyro.conf.Positional[tuple[Path, ...]]
+    """One video per static camera."""
+    output: Path
+    """Image folder to write (<video stem>_f<instant>.jpg)."""
+    offsets: tuple[int, ...] = ()
+    """Per video, its frame index minus the first video's at the same instant."""
+    instants: int = 10
+    """Instants to choose (farthest apart in the people's appearance)."""
+    step: int = 5
+    """Candidate instants every STEP frames of the first video."""
+    verbose: bool = False
+    """Debug logging."""
+
+
+@dataclass(frozen=True)
 class Augment:
     """Add virtual correspondences from human priors to a COLMAP database."""
 
@@ -307,6 +325,20 @@ def _run_priors(cmd: Priors) -> int:
     return 0
 
 
+def _run_frames(cmd: Frames) -> int:
+    from .frames import extract_frames
+
+    summary = extract_frames(
+        cmd.videos, cmd.output, cmd.offsets, cmd.instants, max(1, cmd.step)
+    )
+    sys.stdout.write(
+        f"{len(summary.written)} frames ({len(summary.instants)} instants x "
+        f"{len(cmd.videos)} cameras) -> {summary.output_dir}; next: colmap-vc "
+        f"augment DB --priors P --static-cameras '{summary.static_cameras}'\n"
+    )
+    return 0
+
+
 def _run_augment(cmd: Augment) -> int:
     from .augment import run
 
@@ -407,6 +439,7 @@ def _run_demo(cmd: Demo) -> int:
 
 COMMANDS = {
     "synth": Synth,
+    "frames": Frames,
     "priors": Priors,
     "augment": Augment,
     "map": Map,
@@ -417,6 +450,7 @@ COMMANDS = {
 }
 RUNNERS = {
     Synth: _run_synth,
+    Frames: _run_frames,
     Priors: _run_priors,
     Augment: _run_augment,
     Map: _run_map,
