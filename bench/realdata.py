@@ -170,13 +170,22 @@ def run_instant(
     }
 
 
+def _box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU (N, M) of boxes (N, 4) and (M, 4), x0 y0 x1 y1."""
+    lo = np.maximum(a[:, None, :2], b[None, :, :2])
+    hi = np.minimum(a[:, None, 2:], b[None, :, 2:])
+    inter = np.prod(np.clip(hi - lo, 0, None), axis=2)
+    area = lambda x: np.prod(x[:, 2:] - x[:, :2], axis=1)  # noqa: E731
+    return inter / (area(a)[:, None] + area(b)[None, :] - inter)
+
+
 def association_accuracy(priors_dir: Path, db: Path, labels: dict) -> dict:
     """Links between people of different images against the hand labels.
 
-    A prior person takes the label whose box holds the median of its valid 2D
-    keypoints (one person per label); its identity is the one `augment`'s
-    association gave it. A true link: two people of different images with the same
-    label; a predicted link: the same identity.
+    A prior person takes the label whose box overlaps the box of its valid 2D
+    keypoints most (IoU >= 0.3, one person per label, greedy); its identity is the
+    one `augment`'s association gave it. A true link: two people of different images
+    with the same label; a predicted link: the same identity.
     """
     priors = read_priors(priors_dir)
     views = database.read_views(db)
@@ -184,22 +193,22 @@ def association_accuracy(priors_dir: Path, db: Path, labels: dict) -> dict:
     identity = person_identities(database.read_person_associations(db))
     people = []  # (image, label or None, identity or -1)
     for name, ip in sorted(priors.images.items()):
-        taken: set[int] = set()
-        for k, p in enumerate(ip.persons):
-            xy = (
-                p.keypoints_xy[p.keypoints_valid]
-                if p.keypoints_valid is not None
-                else p.keypoints_xy
-            )
-            c = np.median(xy, axis=0)
-            label = None
-            for j, lb in enumerate(labels.get(name, [])):
-                x0, y0, x1, y1 = lb["box"]
-                if j not in taken and x0 <= c[0] <= x1 and y0 <= c[1] <= y1:
-                    label = lb["label"]
-                    taken.add(j)
-                    break
-            people.append((name, label, identity.get((ids[name], k), -1)))
+        boxes = []
+        for p in ip.persons:
+            ok = p.keypoints_valid if p.keypoints_valid is not None else slice(None)
+            xy = p.keypoints_xy[ok]
+            boxes.append([*xy.min(axis=0), *xy.max(axis=0)])
+        lab = labels.get(name, [])
+        label_of: dict[int, str] = {}
+        if boxes and lab:
+            iou = _box_iou(np.array(boxes), np.array([lb["box"] for lb in lab], float))
+            while iou.max() >= 0.3:
+                k, j = np.unravel_index(np.argmax(iou), iou.shape)
+                label_of[int(k)] = lab[j]["label"]
+                iou[k, :] = -1.0
+                iou[:, j] = -1.0
+        for k in range(len(ip.persons)):
+            people.append((name, label_of.get(k), identity.get((ids[name], k), -1)))
     true = pred = correct = 0
     for a in range(len(people)):
         for b in range(a + 1, len(people)):
