@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+import realdata
 from common import DOCS, OUT, ROOT, machine, replace_section, setup_logging, write_json
 
 from colmap_vc import augment, mapping
@@ -74,32 +75,8 @@ def make_database(
     images: list[str], cameras: dict[str, pycolmap.Camera], work: Path
 ) -> Path:
     """SIFT + exhaustive matching with the known intrinsics (what a user would run)."""
-    work.mkdir(parents=True, exist_ok=True)
     db = work / "database.db"
-    if db.exists():
-        db.unlink()
-    extraction = pycolmap.FeatureExtractionOptions(num_threads=2)
-    extraction.sift.max_num_features = 8192
-    for name in images:
-        cam = cameras[name]
-        reader = pycolmap.ImageReaderOptions(
-            camera_model="OPENCV",
-            camera_params=",".join(f"{p:.17g}" for p in cam.params),
-        )
-        pycolmap.extract_features(
-            db,
-            DATA / "images",
-            image_names=[name],
-            camera_mode=pycolmap.CameraMode.PER_IMAGE,
-            reader_options=reader,
-            extraction_options=extraction,
-            device=pycolmap.Device.cpu,
-        )
-    pycolmap.match_exhaustive(
-        db,
-        matching_options=pycolmap.FeatureMatchingOptions(num_threads=2),
-        device=pycolmap.Device.cpu,
-    )
+    realdata.make_database(DATA, images, cameras, db)
     return db
 
 

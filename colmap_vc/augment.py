@@ -587,6 +587,10 @@ def compute_virtual_correspondences(
         )
         if id1 != id_of(n1):
             cm = cm[:, ::-1]  # classic matches are stored in id order
+        # RANSAC sees them in a canonical order (image-name order, then keypoints),
+        # whatever the ids; the inlier mask goes back to the stored order below.
+        canonical = np.lexsort((cm[:, 1], cm[:, 0]))
+        cm = cm[canonical]
         cxy1 = classic_keypoints[id_of(n1)][cm[:, 0]] if len(cm) else None
         cxy2 = classic_keypoints[id_of(n2)][cm[:, 1]] if len(cm) else None
         result = _verify_with_classic(
@@ -598,6 +602,10 @@ def compute_virtual_correspondences(
             cxy2,
             options,
         )
+        if len(cm):
+            stored = np.zeros(len(cm), dtype=bool)
+            stored[canonical] = result.classic_is_inlier
+            result = dataclasses.replace(result, classic_is_inlier=stored)
         if result.geometry is None:
             failed[(n1, n2)] = (cat, "the associated people's VCs do not verify")
             continue

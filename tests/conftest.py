@@ -5,6 +5,7 @@ from __future__ import annotations
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 import pytest
 
 
@@ -36,3 +37,30 @@ def dome_scene(tmp_path_factory: pytest.TempPathFactory) -> Path:
         ),
     )
     return out
+
+
+def extract_database(
+    image_dir: Path, names: list[str], cameras: dict[str, pycolmap.Camera], db: Path
+) -> Path:
+    """SIFT (known intrinsics) of ``names`` in this order, then exhaustive matching:
+    the order is the image ids COLMAP gives."""
+    for name in names:
+        cam = cameras[name]
+        pycolmap.extract_features(
+            db,
+            image_dir,
+            image_names=[name],
+            camera_mode=pycolmap.CameraMode.PER_IMAGE,
+            reader_options=pycolmap.ImageReaderOptions(
+                camera_model=cam.model.name,
+                camera_params=",".join(f"{p:.17g}" for p in cam.params),
+            ),
+            extraction_options=pycolmap.FeatureExtractionOptions(num_threads=1),
+            device=pycolmap.Device.cpu,
+        )
+    pycolmap.match_exhaustive(
+        db,
+        matching_options=pycolmap.FeatureMatchingOptions(num_threads=1),
+        device=pycolmap.Device.cpu,
+    )
+    return db

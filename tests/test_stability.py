@@ -12,8 +12,8 @@ import dataclasses
 from pathlib import Path
 
 import numpy as np
-import pycolmap
 import pytest
+from conftest import extract_database
 
 from colmap_vc import augment, database, mapping
 from colmap_vc.evaluation import relative_pose, relative_pose_error
@@ -27,26 +27,7 @@ def _extract(scene: Path, order: list[str], db_path: Path) -> Path:
         n: views.cameras[int(c)]
         for n, c in zip(views.image_names, views.camera_ids, strict=True)
     }
-    for name in order:
-        cam = camera_of[name]
-        pycolmap.extract_features(
-            db_path,
-            scene / "images",
-            image_names=[name],
-            camera_mode=pycolmap.CameraMode.PER_IMAGE,
-            reader_options=pycolmap.ImageReaderOptions(
-                camera_model=cam.model.name,
-                camera_params=",".join(f"{p:.17g}" for p in cam.params),
-            ),
-            extraction_options=pycolmap.FeatureExtractionOptions(num_threads=1),
-            device=pycolmap.Device.cpu,
-        )
-    pycolmap.match_exhaustive(
-        db_path,
-        matching_options=pycolmap.FeatureMatchingOptions(num_threads=1),
-        device=pycolmap.Device.cpu,
-    )
-    return db_path
+    return extract_database(scene / "images", order, camera_of, db_path)
 
 
 @pytest.fixture(scope="module")

@@ -8,6 +8,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from conftest import extract_database
 
 from colmap_vc import cli, database
 from colmap_vc.priors import read_priors, write_priors
@@ -112,21 +113,8 @@ def test_one_pose_per_static_camera_end_to_end(
         for n, c in zip(views.image_names, views.camera_ids, strict=True)
     }
     all_names = sorted([*names, *(n.replace(".jpg", "_t2.jpg") for n in names)])
-    for name in all_names:
-        cam = camera_of[name.replace("_t2", "")]
-        pycolmap.extract_features(
-            db,
-            images,
-            image_names=[name],
-            camera_mode=pycolmap.CameraMode.PER_IMAGE,
-            reader_options=pycolmap.ImageReaderOptions(
-                camera_model=cam.model.name,
-                camera_params=",".join(f"{p:.17g}" for p in cam.params),
-            ),
-            extraction_options=pycolmap.FeatureExtractionOptions(num_threads=1),
-            device=pycolmap.Device.cpu,
-        )
-    pycolmap.match_exhaustive(db, device=pycolmap.Device.cpu)
+    cameras = {n: camera_of[n.replace("_t2", "")] for n in all_names}
+    extract_database(images, all_names, cameras, db)
     anonymous = {
         n: ImagePrior(
             image_name=n,
