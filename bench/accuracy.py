@@ -188,6 +188,7 @@ def run_vc(
         cached = work.parent / f"augmented_classic{int(with_classic)}.db"
         shutil.copyfile(db, cached)
         augmented[with_classic] = (cached, augment_s)
+    shutil.rmtree(work / "sparse", ignore_errors=True)  # the bench's own output
     rec, _ = mapping.run_incremental(
         db,
         scene_dir / "images",

@@ -128,6 +128,7 @@ def run_method(
         else (FEW["mapping"] if few else mapping.MappingOptions(show_progress=False))
     )
     options = replace(options, seed=seed)
+    shutil.rmtree(work / "sparse", ignore_errors=True)  # the bench's own output
     rec, _ = mapping.run_incremental(run_db, DATA / "images", work / "sparse", options)
     pred = (
         {}

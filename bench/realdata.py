@@ -134,6 +134,7 @@ def run_instant(
         raise RuntimeError(f"augment failed ({code}) for {images}")
     t_augment = time.perf_counter() - t0
     sparse = work / "sparse"
+    shutil.rmtree(sparse, ignore_errors=True)  # the bench's own output
     t0 = time.perf_counter()
     code = cli.main(
         [
@@ -143,7 +144,6 @@ def run_instant(
             str(data / "images"),
             "--output-path",
             str(sparse),
-            "--overwrite",
             "--no-show-progress",
         ]
     )

@@ -13,6 +13,7 @@ Writes bench/out/static_cameras.json and the "static" section of docs/results.md
 from __future__ import annotations
 
 import argparse
+import shutil
 import time
 
 import numpy as np
@@ -40,6 +41,7 @@ def run(ds: str, out_dir: str) -> dict:
         assert cli.main([*args, "--database", str(db), "--no-progress"]) == 0
     t_priors = time.perf_counter() - t0
     t0 = time.perf_counter()
+    shutil.rmtree(work / "sparse", ignore_errors=True)  # the bench's own output
     code = cli.main(
         [
             "augment",
@@ -62,7 +64,6 @@ def run(ds: str, out_dir: str) -> dict:
             str(work / "sparse"),
             "--static-cameras",
             PATTERN,
-            "--overwrite",
             "--no-show-progress",
         ]
     )

@@ -164,7 +164,9 @@ class Map:
     Off by default: after the keypoint BA it made every synthetic dome scene worse
     (docs/results.md, VC + keypoint BA against VC + GBA)."""
     overwrite: bool = False
-    """Replace a non-empty OUTPUT_PATH."""
+    """Replace an OUTPUT_PATH that `map` wrote before (it holds a .colmap-vc-map
+    marker); a folder colmap-vc did not write, or one holding the database, images or
+    priors, is never removed."""
     verbose: bool = False
     """Debug logging."""
 

@@ -484,8 +484,12 @@ def run(
             raise FileExistsError(
                 f"{output_dir} exists and is not empty (use --overwrite)"
             )
+        _check_removable(output_dir, database_path, image_dir, priors_path)
         shutil.rmtree(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
+    (output_dir / OUTPUT_MARKER).write_text(
+        "written by colmap-vc map; `map --overwrite` may replace this folder\n"
+    )
     views = database.read_views(database_path)
     num_images = len(views.image_names)
     static = _static_cameras(options, database_path, views.image_names)
@@ -615,6 +619,31 @@ def run(
     for name, reason in reasons.items():
         logger.info("not registered: %s: %s", name, reason)
     return best, summary
+
+
+OUTPUT_MARKER = ".colmap-vc-map"
+"""File `map` writes into its output folder: `--overwrite` removes only such folders."""
+
+
+def _check_removable(
+    output_dir: Path, database_path: Path, image_dir: Path, priors_path: Path | None
+) -> None:
+    """Refuse to remove a folder colmap-vc did not write, or one holding the inputs."""
+    out = output_dir.resolve()
+    inputs = [database_path, image_dir, *([priors_path] if priors_path else [])]
+    for path in inputs:
+        p = Path(path).resolve()
+        if p == out or out in p.parents:
+            raise FileExistsError(
+                f"--overwrite refused: {output_dir} holds the input {path}; choose "
+                "another --output-path (nothing was removed)"
+            )
+    if not (output_dir / OUTPUT_MARKER).is_file():
+        raise FileExistsError(
+            f"--overwrite refused: {output_dir} was not written by colmap-vc map (no "
+            f"{OUTPUT_MARKER} marker); remove it yourself or choose another "
+            "--output-path (nothing was removed)"
+        )
 
 
 def _static_cameras(

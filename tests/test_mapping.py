@@ -95,7 +95,8 @@ def test_without_verified_pairs_meshes_and_keypoint_tracks_still_register(
         mapping.MappingOptions(num_threads=2, show_progress=False),
     )
     assert summary.num_registered == 6
-    assert sorted(p.name for p in (tmp_path / "sparse").iterdir()) == ["mesh"]
+    models = sorted(p.name for p in (tmp_path / "sparse").iterdir())
+    assert models == [mapping.OUTPUT_MARKER, "mesh"]  # one answer, no superseded
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     mesh_only = evaluate_poses(
         mesh_alignment_poses(read_priors(dome_scene / "priors")), poses_by_name(gt)
@@ -135,3 +136,38 @@ def test_a_camera_that_contradicts_the_meshes_is_left_out(dome_scene):
     assert not rec.image(image.image_id).has_pose
     assert rec.num_reg_images() == len(rec.images) - 1
     assert np.isfinite(T).all()
+
+
+@pytest.mark.parametrize("where", ["project", "foreign"])
+def test_overwrite_never_removes_what_colmap_vc_did_not_write(
+    dome_scene, augmented, tmp_path, where
+):
+    """`map --overwrite` into the folder holding the database, or into a folder
+    colmap-vc did not write, is refused and removes nothing."""
+    project = tmp_path / "project"
+    shutil.copytree(dome_scene / "images", project / "images")
+    shutil.copyfile(augmented, project / "database.db")
+    out = project if where == "project" else tmp_path / "mine"
+    out.mkdir(exist_ok=True)
+    (out / "notes.txt").write_text("keep me")
+    before = sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*"))
+    with pytest.raises(FileExistsError, match="--overwrite refused"):
+        mapping.run(
+            project / "database.db",
+            project / "images",
+            out,
+            mapping.MappingOptions(show_progress=False),
+            overwrite=True,
+        )
+    assert sorted(p.relative_to(tmp_path) for p in tmp_path.rglob("*")) == before
+
+
+def test_overwrite_replaces_a_folder_map_wrote(dome_scene, augmented, tmp_path):
+    out = tmp_path / "sparse"
+    options = mapping.MappingOptions(show_progress=False)
+    mapping.run(augmented, dome_scene / "images", out, options)
+    assert (out / mapping.OUTPUT_MARKER).is_file()
+    _, summary = mapping.run(
+        augmented, dome_scene / "images", out, options, overwrite=True
+    )
+    assert summary.num_registered >= 5
