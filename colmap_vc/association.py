@@ -39,7 +39,7 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-from .evaluation import rotation_angle_deg, vector_angle_deg
+from .evaluation import pose_disagreement_deg
 from .meshalign import procrustes
 from .structs import FloatArray
 
@@ -144,13 +144,6 @@ def appearance_distance(a: FloatArray | None, b: FloatArray | None) -> float:
     d[:, 0] *= 0.5  # lightness changes most with lighting, chroma least
     dist = np.linalg.norm(d, axis=1)
     return float((w * dist).sum() / w.sum())
-
-
-def pose_disagreement_deg(p: FloatArray, q: FloatArray) -> float:
-    """max(rotation angle, translation-direction angle) between two (3, 4) poses."""
-    return max(
-        rotation_angle_deg(p[:, :3] @ q[:, :3].T), vector_angle_deg(p[:, 3], q[:, 3])
-    )
 
 
 def _unary(

@@ -20,14 +20,7 @@ import pycolmap
 from tqdm import tqdm
 
 from . import __version__, database, raycast
-from .association import (
-    AssociationOptions,
-    LinkEvidence,
-    PersonCue,
-    associate,
-    pose_disagreement_deg,
-)
-from .evaluation import rotation_angle_deg
+from .association import AssociationOptions, LinkEvidence, PersonCue, associate
 from .matching import (
     MatchingOptions,
     PersonMatches,
@@ -51,7 +44,14 @@ from .structs import (
     ScenePriors,
     VcKeypoints,
 )
-from .verification import Verification, VerificationOptions, verify_pair
+from .verification import (
+    Verification,
+    VerificationOptions,
+    cycle_inconsistent_pairs,
+    inverted,
+    verify_pair,
+    verify_pair_with_classic,
+)
 
 logger = logging.getLogger(__name__)
 
@@ -336,133 +336,6 @@ def _person_cues(
     ]
 
 
-def _verify_with_classic(
-    cam1: pycolmap.Camera,
-    cam2: pycolmap.Camera,
-    vc_xy1: FloatArray,
-    vc_xy2: FloatArray,
-    classic_xy1: FloatArray | None,
-    classic_xy2: FloatArray | None,
-    options: AugmentOptions,
-) -> Verification:
-    """Verification that a few spurious classic matches cannot steer.
-
-    The VCs are verified on their own. Classic matches join only when they verify
-    on their own too *and* their relative pose agrees with the VCs' (within
-    ``max_classic_disagreement_deg``); the joint estimate is then kept if it still
-    agrees. Otherwise the pair's geometry is the VCs' alone, without classic inliers.
-    """
-    vc = verify_pair(cam1, cam2, vc_xy1, vc_xy2, options=options.verification)
-    if classic_xy1 is None or classic_xy2 is None or len(classic_xy1) == 0:
-        return vc
-    none_classic = np.zeros(len(classic_xy1), dtype=bool)
-    classic = verify_pair(
-        cam1,
-        cam2,
-        np.zeros((0, 2)),
-        np.zeros((0, 2)),
-        classic_xy1,
-        classic_xy2,
-        options.verification,
-    )
-    if vc.geometry is None:
-        return Verification(
-            geometry=None, vc_is_inlier=vc.vc_is_inlier, classic_is_inlier=none_classic
-        )
-    limit = options.max_classic_disagreement_deg
-    if classic.geometry is not None and (
-        pose_disagreement_deg(
-            classic.geometry.cam2_from_cam1, vc.geometry.cam2_from_cam1
-        )
-        <= limit
-    ):
-        joint = verify_pair(
-            cam1,
-            cam2,
-            vc_xy1,
-            vc_xy2,
-            classic_xy1,
-            classic_xy2,
-            options.verification,
-        )
-        if joint.geometry is not None and (
-            pose_disagreement_deg(
-                joint.geometry.cam2_from_cam1, vc.geometry.cam2_from_cam1
-            )
-            <= limit
-        ):
-            return joint
-    return Verification(
-        geometry=vc.geometry,
-        vc_is_inlier=vc.vc_is_inlier,
-        classic_is_inlier=none_classic,
-    )
-
-
-def _inverted(result: Verification) -> Verification:
-    """The same verification seen from image 2 (cam1_from_cam2, transposed E/F)."""
-    g = result.geometry
-    if g is None:
-        return result
-    R, t = g.cam2_from_cam1[:, :3], g.cam2_from_cam1[:, 3]
-    return Verification(
-        geometry=PairGeometry(
-            config=g.config,
-            E=g.E.T.copy(),
-            F=g.F.T.copy(),
-            H=np.linalg.inv(g.H) if abs(np.linalg.det(g.H)) > 1e-12 else g.H.copy(),
-            cam2_from_cam1=np.c_[R.T, -R.T @ t],
-        ),
-        vc_is_inlier=result.vc_is_inlier,
-        classic_is_inlier=result.classic_is_inlier,
-    )
-
-
-def _cycle_inconsistent_pairs(
-    rotations: Mapping[tuple[str, str], FloatArray], max_error_deg: float
-) -> dict[tuple[str, str], str]:
-    """Pairs (name order) whose rotation breaks most of the triplets they close.
-
-    For images a < b < c with all three pairs verified, R_ac should equal R_bc R_ab.
-    The pair in the most inconsistent (and more inconsistent than consistent)
-    triplets is dropped, then the next, until none is left; when several pairs tie
-    the cycles cannot tell which one is wrong, and none is dropped.
-    """
-    pairs = dict(rotations)
-    dropped: dict[tuple[str, str], str] = {}
-    names = sorted({n for p in pairs for n in p})
-    while True:
-        bad: dict[tuple[str, str], int] = {}
-        good: dict[tuple[str, str], int] = {}
-        worst: dict[tuple[str, str], float] = {}
-        for a, b, c in itertools.combinations(names, 3):
-            if not ((a, b) in pairs and (b, c) in pairs and (a, c) in pairs):
-                continue
-            R = pairs[(b, c)] @ pairs[(a, b)] @ pairs[(a, c)].T
-            err = rotation_angle_deg(R)
-            for p in ((a, b), (b, c), (a, c)):
-                if err > max_error_deg:
-                    bad[p] = bad.get(p, 0) + 1
-                    worst[p] = max(worst.get(p, 0.0), err)
-                else:
-                    good[p] = good.get(p, 0) + 1
-        candidates = [p for p in bad if bad[p] > good.get(p, 0)]
-        if not candidates:
-            return dropped
-        most = max(bad[p] for p in candidates)
-        worst_pairs = [p for p in candidates if bad[p] == most]
-        if len(worst_pairs) > 1:
-            # Several pairs break as many cycles: the cycles cannot tell which is
-            # wrong (e.g. 4 views, every triplet broken); keep them all.
-            return dropped
-        p = worst_pairs[0]
-        dropped[p] = (
-            f"its rotation breaks {bad[p]} of {bad[p] + good.get(p, 0)} view "
-            f"triplets (cycle error up to {worst[p]:.0f} deg > {max_error_deg:g})"
-        )
-        del pairs[p]
-
-
 def compute_virtual_correspondences(
     views: database.DatabaseViews,
     priors: ScenePriors,
@@ -593,14 +466,15 @@ def compute_virtual_correspondences(
         cm = cm[canonical]
         cxy1 = classic_keypoints[id_of(n1)][cm[:, 0]] if len(cm) else None
         cxy2 = classic_keypoints[id_of(n2)][cm[:, 1]] if len(cm) else None
-        result = _verify_with_classic(
+        result = verify_pair_with_classic(
             camera_of(n1),
             camera_of(n2),
             _gather(observations[n1], cat[0], cat[1], "xy_img"),
             _gather(observations[n2], cat[2], cat[3], "xy_img"),
             cxy1,
             cxy2,
-            options,
+            options.verification,
+            options.max_classic_disagreement_deg,
         )
         if len(cm):
             stored = np.zeros(len(cm), dtype=bool)
@@ -610,7 +484,7 @@ def compute_virtual_correspondences(
             failed[(n1, n2)] = (cat, "the associated people's VCs do not verify")
             continue
         verified[(n1, n2)] = (result, cat, len(cm))
-    dropped = _cycle_inconsistent_pairs(
+    dropped = cycle_inconsistent_pairs(
         {p: v[0].geometry.cam2_from_cam1[:, :3] for p, v in verified.items()},  # type: ignore[union-attr]
         options.max_cycle_error_deg,
     )
@@ -637,7 +511,7 @@ def compute_virtual_correspondences(
         pl = association.links[(n1, n2)]
         if id_of(n1) > id_of(n2):
             n1, n2, cat = n2, n1, (cat[2], cat[3], cat[0], cat[1], cat[4], cat[5])
-            result, pl = _inverted(result), [(b, a) for a, b in pl]
+            result, pl = inverted(result), [(b, a) for a, b in pl]
         candidates.append((n1, n2, result, cat, pl, method, num_classic, ""))
     for (n1, n2), (cat, reason) in failed.items():
         pl = association.links.get((n1, n2), [])

@@ -63,6 +63,12 @@ def relative_pose_error(
     )
 
 
+def pose_disagreement_deg(p: FloatArray, q: FloatArray) -> float:
+    """max(rotation angle, translation-direction angle) between two (3, 4) poses:
+    the pose error of the evaluation, between any two estimates."""
+    return max(relative_pose_error(p, q))
+
+
 def pose_auc(
     errors_deg: Sequence[float] | FloatArray, thresholds_deg: Sequence[float]
 ) -> list[float]:
