@@ -55,20 +55,9 @@ def load_cameras() -> tuple[
     dict[str, pycolmap.Camera], dict[str, np.ndarray], list[str]
 ]:
     """pycolmap cameras and GT cam_from_world per image name; camera names."""
+    cameras, poses = realdata.load_calibration(DATA)
     spec = json.loads((DATA / "cameras.json").read_text())
-    cameras, poses, names = {}, {}, []
-    for cam in spec["cameras"]:
-        names.append(cam["name"])
-        K = np.array(cam["K"])
-        w, h = cam["image_size_wh"]
-        params = [K[0, 0], K[1, 1], K[0, 2], K[1, 2], *cam["dist_k1k2p1p2"]]
-        for rel in cam["images"].values():
-            name = Path(rel).name
-            cameras[name] = pycolmap.Camera(
-                model="OPENCV", width=w, height=h, params=params
-            )
-            poses[name] = np.c_[np.array(cam["R"]), np.array(cam["t"])]
-    return cameras, poses, names
+    return cameras, poses, [cam["name"] for cam in spec["cameras"]]
 
 
 def make_database(
