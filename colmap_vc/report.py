@@ -800,8 +800,11 @@ def _pairs_section(ctx: _Context) -> str:
 def _people_section(ctx: _Context) -> str:
     """Each image's VC keypoints coloured by their person's identity."""
     from colmap_vc import report_people
+    from colmap_vc.keypoint_ba import person_identities
 
-    associations = database.read_person_associations(ctx.inputs.database_path)
+    identities = person_identities(
+        database.read_person_associations(ctx.inputs.database_path)
+    )
     parts = [
         '<section id="people"><h2>People</h2>',
         '<p class="sub">VC keypoints coloured by the identity the association '
@@ -815,9 +818,7 @@ def _people_section(ctx: _Context) -> str:
     parts.append('<div class="pairs">')
     for image_id in sorted(ctx.vc_keypoints, key=lambda i: ctx.names[i]):
         kp = ctx.vc_keypoints[image_id]
-        identity = report_people.keypoint_identities(
-            associations, image_id, kp.person_id
-        )
+        identity = report_people.keypoint_identities(identities, image_id, kp.person_id)
         panel = report_people.draw_people(
             _read_image(ctx, image_id),
             kp.xy_img,

@@ -10,8 +10,6 @@ from __future__ import annotations
 
 import numpy as np
 
-from colmap_vc import database
-from colmap_vc.keypoint_ba import person_identities
 from colmap_vc.structs import FloatArray, IndexArray
 
 # BGR, distinct for the first eight identities (Okabe-Ito), then cycling.
@@ -40,12 +38,10 @@ def identity_colors(identity: IndexArray) -> np.ndarray:
 
 
 def keypoint_identities(
-    associations: list[database.PersonAssociation],
-    image_id: int,
-    person_id: IndexArray,
+    identity: dict[tuple[int, int], int], image_id: int, person_id: IndexArray
 ) -> IndexArray:
-    """(N,) identity of each VC keypoint of an image from its person (-1: none)."""
-    identity = person_identities(associations)
+    """(N,) identity of each VC keypoint of an image from its person (-1: none);
+    ``identity``: (image_id, person_id) -> identity (``person_identities``)."""
     lookup = {p: i for (img, p), i in identity.items() if img == image_id}
     return np.array([lookup.get(int(p), -1) for p in np.unique(person_id)])[
         np.searchsorted(np.unique(person_id), person_id)
