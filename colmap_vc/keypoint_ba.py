@@ -168,7 +168,8 @@ def keypoint_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTrack
                 v.xy_img[rows],
             )
         )
-    if not parts:
+    parts = [part for part in parts if len(part[0])]
+    if not parts:  # no keypoint VC of a person with an identity
         z = np.zeros(0, dtype=np.int64)
         return KeypointTracks(
             track=z, image_id=z, point2D_idx=z, xy_img=np.zeros((0, 2))
