@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pycolmap
 
-from . import augment, mapping
+from . import augment, mapping, outputs
 from .baselines import mesh_alignment_poses, run_classic
 from .evaluation import (
     Metrics,
@@ -57,12 +57,7 @@ def run(out_dir: Path, *, overwrite: bool = False) -> DemoSummary:
     timings: dict[str, float] = {}
     out_dir = Path(out_dir)
     scene_dir = out_dir / "scene"
-    if out_dir.exists() and any(out_dir.iterdir()):
-        if not overwrite:
-            raise FileExistsError(
-                f"{out_dir} exists and is not empty (use --overwrite)"
-            )
-        shutil.rmtree(out_dir)
+    outputs.prepare_output_dir(out_dir, "demo", overwrite=overwrite)
     logger.info("1/5 synth: the default dome scene into %s", scene_dir)
     t0 = time.perf_counter()
     generate(

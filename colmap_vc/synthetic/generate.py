@@ -20,7 +20,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import shutil
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
@@ -30,7 +29,7 @@ import numpy as np
 import pycolmap
 from scipy.spatial import cKDTree
 
-from .. import __version__
+from .. import __version__, outputs
 from ..priors import write_priors
 from ..structs import ImagePrior, ScenePriors
 from . import bodies as body_lib
@@ -304,12 +303,7 @@ def generate(
     options = options or SynthOptions()
     preset = Preset(preset)
     out_dir = Path(out_dir)
-    if out_dir.exists() and any(out_dir.iterdir()):
-        if not options.overwrite:
-            raise FileExistsError(
-                f"{out_dir} exists and is not empty (use --overwrite)"
-            )
-        shutil.rmtree(out_dir)
+    outputs.prepare_output_dir(out_dir, "synth", overwrite=options.overwrite)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     rng = np.random.default_rng(options.seed)
