@@ -13,6 +13,7 @@ import contextlib
 import hashlib
 import json
 import logging
+import os
 import sqlite3
 from collections.abc import Iterable, Iterator, Mapping, Sequence
 from dataclasses import dataclass
@@ -38,6 +39,9 @@ from colmap_vc.structs import (
 logger = logging.getLogger(__name__)
 
 BUSY_TIMEOUT_S = 0.5  # fail fast (RuntimeError) when another process writes
+COMMITTED: list[Path] = []
+"""Databases this process changed (committed transactions), for the CLI's report
+after an interrupt: any other database is as it was."""
 Pair = tuple[int, int]
 
 
@@ -120,6 +124,7 @@ class StripSummary:
     num_geometries_restored: int
     num_geometries_deleted: int
     num_tables_dropped: int
+    num_user_rows_kept: int  # rows changed after augment, kept by --force
 
 
 # ---------------------------------------------------------------- connections
@@ -133,8 +138,23 @@ def _connect(
     path = Path(db_path)
     if not path.is_file():
         raise FileNotFoundError(f"COLMAP database not found: {path}")
+    if write:
+        require_writable(path)
+    # Reads open read-write with query_only where the user may write: SQLite's
+    # last read-write connection removes the -wal/-shm files of a WAL database on
+    # close, a read-only one leaves them behind. query_only refuses every write.
+    mode = "rw" if write or _writable(path) else "ro"
+    # A read-only folder: SQLite cannot create the -shm file a WAL database needs,
+    # and nobody can write the database without creating its -wal file there, so
+    # an existing -wal is the only sign of a writer.
+    if (
+        not write
+        and not os.access(path.parent, os.W_OK)
+        and not Path(f"{path}-wal").exists()
+    ):
+        mode += "&immutable=1"
     conn = sqlite3.connect(
-        f"{path.resolve().as_uri()}?mode=rw",
+        f"{path.resolve().as_uri()}?mode={mode}",
         uri=True,
         timeout=BUSY_TIMEOUT_S,
         isolation_level=None,  # transactions are explicit, see _transaction()
@@ -161,6 +181,42 @@ def _connect(
         conn.close()
 
 
+def _writable(path: Path) -> bool:
+    return os.access(path, os.W_OK) and os.access(path.parent, os.W_OK)
+
+
+def require_writable(db_path: str | PathLike[str]) -> None:
+    """Raise PermissionError unless the database and its folder (SQLite writes its
+    rollback journal there) are writable by this process."""
+    path = Path(db_path)
+    for what, target in (("database", path), ("folder of the database", path.parent)):
+        if not os.access(target, os.W_OK):
+            raise PermissionError(
+                f"the {what} {target} is read-only: make it writable (chmod u+w) or "
+                "work on a copy; nothing was changed"
+            )
+
+
+def check_before_write(db_path: str | PathLike[str]) -> None:
+    """Everything that would make a later VC write fail, checked now (only reads).
+
+    ``augment`` calls this before it computes VCs, so a read-only, damaged or
+    user-changed database is refused in a second, not after minutes of work.
+    Raises PermissionError or ValueError (see :func:`write_virtual_correspondences`).
+    """
+    path = Path(db_path)
+    require_writable(path)
+    with _connect(path, write=False) as (conn, _):
+        _require_intact(conn, path)
+        if "colmap_vc_state" in sch.vc_table_names(conn):
+            try:
+                dbw.require_strippable(conn)
+            except ValueError as error:
+                raise ValueError(
+                    f"{path}: cannot replace the earlier VCs: {error}"
+                ) from error
+
+
 @contextlib.contextmanager
 def _transaction(conn: sqlite3.Connection, path: Path) -> Iterator[None]:
     """One write transaction: all or nothing, also if the process dies inside it."""
@@ -174,10 +230,24 @@ def _transaction(conn: sqlite3.Connection, path: Path) -> Iterator[None]:
     try:
         yield
         conn.execute("COMMIT")
+        COMMITTED.append(path)
     except BaseException:
         if conn.in_transaction:
             conn.execute("ROLLBACK")
         raise
+
+
+def _require_intact(conn: sqlite3.Connection, path: Path) -> None:
+    """Refuse to write into a damaged file (SQLite's quick_check reads every page)."""
+    try:
+        problems = [r[0] for r in conn.execute("PRAGMA quick_check(3)")]
+    except sqlite3.DatabaseError as error:
+        problems = [str(error)]
+    if problems != ["ok"]:
+        raise ValueError(
+            f"{path} is damaged ({'; '.join(problems)}): restore it from a backup or "
+            "rebuild it with COLMAP; colmap-vc did not change it"
+        )
 
 
 def _require_keypoints(conn: sqlite3.Connection, path: Path) -> None:
@@ -462,13 +532,19 @@ def write_virtual_correspondences(
     counts = np.zeros(4, np.int64)
     num_desc = 0
     with _connect(path, write=True) as (conn, schema), _transaction(conn, path):
+        _require_intact(conn, path)
         _require_keypoints(conn, path)
         missing = needed - {
             row[0] for row in conn.execute("SELECT image_id FROM images")
         }
         if missing:
             raise ValueError(f"images {sorted(missing)} are not in {path}")
-        replaced = dbw.strip_rows(conn)["had_vcs"]
+        try:
+            replaced = dbw.strip_rows(conn)["had_vcs"]
+        except ValueError as error:
+            raise ValueError(
+                f"{path}: cannot replace the earlier VCs: {error}"
+            ) from error
         for ddl in sch.VC_TABLES_DDL:
             conn.execute(ddl)
         for table in sch.PAIR_TABLES:
@@ -497,6 +573,7 @@ def write_virtual_correspondences(
                 classic_inliers.get(pair),
                 num_classic,
             )
+        dbw.record_written_rows(conn)
         dbw.write_metadata(
             conn, by_image, by_pair, geometries, num_classic, persons or ()
         )
@@ -540,11 +617,20 @@ def write_virtual_correspondences(
     return summary
 
 
-def strip(db_path: str | PathLike[str]) -> StripSummary:
-    """Remove colmap-vc's VCs: every COLMAP table as before the first augment."""
+def strip(db_path: str | PathLike[str], *, force: bool = False) -> StripSummary:
+    """Remove colmap-vc's VCs: every COLMAP table as before the first augment.
+
+    Raises ValueError (the database unchanged) when rows colmap-vc wrote were
+    changed after augment (e.g. the user re-matched); ``force`` keeps those rows
+    as the user left them, minus the matches that index VC keypoints.
+    """
     path = Path(db_path)
     with _connect(path, write=True) as (conn, _), _transaction(conn, path):
-        summary = StripSummary(**dbw.strip_rows(conn))
+        _require_intact(conn, path)
+        try:
+            summary = StripSummary(**dbw.strip_rows(conn, force=force))
+        except ValueError as error:
+            raise ValueError(f"{path}: {error}") from error
     logger.info(
         "Stripped %s: %d keypoints and %d descriptors rows restored, matches "
         "%d restored/%d removed, two-view geometries %d restored/%d removed",
@@ -557,6 +643,24 @@ def strip(db_path: str | PathLike[str]) -> StripSummary:
         summary.num_geometries_deleted,
     )
     return summary
+
+
+def snapshot(db_path: str | PathLike[str], copy_path: str | PathLike[str]) -> Path:
+    """A consistent copy of the database at ``copy_path``; the original is only read.
+
+    pycolmap's mappers open their database read-write and migrate it to their
+    schema; ``map`` gives them this copy so the user's file is never written.
+    """
+    path, copy = Path(db_path), Path(copy_path)
+    with _connect(path, write=False) as (conn, _):
+        target = sqlite3.connect(copy)
+        try:
+            conn.backup(target)
+        except sqlite3.OperationalError as error:
+            raise RuntimeError(f"cannot copy {path} to {copy}: {error}") from error
+        finally:
+            target.close()
+    return copy
 
 
 def drop_classic_matches(db_path: str | PathLike[str]) -> int:

@@ -77,12 +77,24 @@ VC_TABLES_DDL = (
         sha256 TEXT NOT NULL, PRIMARY KEY (tbl, image_id))""",
     """CREATE TABLE colmap_vc_backup_pairs (
         tbl TEXT NOT NULL, pair_id INTEGER NOT NULL, existed INTEGER NOT NULL,
-        PRIMARY KEY (tbl, pair_id))""",
+        written_sha256 TEXT, PRIMARY KEY (tbl, pair_id))""",
 )
 VC_MATCH_COLUMNS = (
     "pair_id, vc_idx, image_id1, image_id2, point2D_idx1, point2D_idx2, person_id, "
     "kind, track_id, x1, y1, z1, x2, y2, z2, a, b, is_inlier"
 )
+
+
+def _ddl_name(ddl: str) -> str:
+    return ddl.split()[2]
+
+
+def missing_vc_tables(conn: sqlite3.Connection) -> list[str]:
+    """colmap-vc tables an augmented database must hold to be restored, but lacks."""
+    present = set(table_names(conn))
+    needed = [_ddl_name(ddl) for ddl in VC_TABLES_DDL]
+    needed += [backup_table(table) for table in PAIR_TABLES]
+    return [name for name in needed if name not in present]
 
 
 def backup_table(table: str) -> str:
@@ -212,6 +224,17 @@ def vc_descriptors(image_id: int, num_rows: int) -> bytes:
 def sha256(data: bytes | None) -> str:
     """Hex digest of a blob (NULL hashes like an empty blob)."""
     return hashlib.sha256(data or b"").hexdigest()
+
+
+def pair_row_digest(conn: sqlite3.Connection, table: str, pair_id: int) -> str | None:
+    """Digest of a matches/two_view_geometries row (None: no row), to tell later
+    whether someone changed the row colmap-vc wrote."""
+    row = conn.execute(
+        f"SELECT rows, cols, data FROM {table} WHERE pair_id = ?", (pair_id,)
+    ).fetchone()
+    if row is None:
+        return None
+    return hashlib.sha256(f"{row[0]}:{row[1]}:".encode() + (row[2] or b"")).hexdigest()
 
 
 def rotation_to_qvec_wxyz(rotation: np.ndarray) -> np.ndarray:

@@ -332,29 +332,169 @@ def write_metadata(
     )
 
 
-def strip_rows(conn: sqlite3.Connection) -> dict[str, Any]:
+def record_written_rows(conn: sqlite3.Connection) -> None:
+    """Store the digest of every pair row just written, for strip's check."""
+    rows = conn.execute("SELECT tbl, pair_id FROM colmap_vc_backup_pairs").fetchall()
+    conn.executemany(
+        "UPDATE colmap_vc_backup_pairs SET written_sha256 = ? "
+        "WHERE tbl = ? AND pair_id = ?",
+        [(sch.pair_row_digest(conn, t, p), t, p) for t, p in rows],
+    )
+
+
+def _pair_names(conn: sqlite3.Connection, pair_ids: Sequence[int]) -> str:
+    names = dict(conn.execute("SELECT image_id, name FROM images"))
+    shown = [
+        "-".join(str(names.get(i, i)) for i in sch.images_from_pair_id(p))
+        for p in sorted(pair_ids)[:4]
+    ]
+    more = f" and {len(pair_ids) - 4} more" if len(pair_ids) > 4 else ""
+    return ", ".join(shown) + more
+
+
+def changes_since_write(conn: sqlite3.Connection) -> dict[tuple[str, str], list[int]]:
+    """Rows of COLMAP tables someone changed after colmap-vc wrote them.
+
+    Keys are (table, "changed" | "deleted"); values are pair ids (matches,
+    two_view_geometries) or image ids (keypoints, descriptors). Databases augmented
+    before colmap-vc recorded row digests report no pair changes.
+    """
+    changes: dict[tuple[str, str], list[int]] = {}
+    backups = conn.execute(
+        "SELECT tbl, image_id, num_bytes, data_is_null, sha256 "
+        "FROM colmap_vc_backup_features ORDER BY tbl, image_id"
+    ).fetchall()
+    for table, image_id, num_bytes, is_null, digest in backups:
+        row = conn.execute(
+            f"SELECT data FROM {table} WHERE image_id = ?", (image_id,)
+        ).fetchone()
+        if row is None:
+            changes.setdefault((table, "deleted"), []).append(image_id)
+        elif sch.sha256(None if is_null else (row[0] or b"")[:num_bytes]) != digest:
+            changes.setdefault((table, "changed"), []).append(image_id)
+    if "written_sha256" in sch.column_names(conn, "colmap_vc_backup_pairs"):
+        written = conn.execute(
+            "SELECT tbl, pair_id, written_sha256 FROM colmap_vc_backup_pairs "
+            "ORDER BY tbl, pair_id"
+        ).fetchall()
+        for table, pair_id, digest in written:
+            now = sch.pair_row_digest(conn, table, pair_id)
+            if now != digest:
+                kind = "deleted" if now is None else "changed"
+                changes.setdefault((table, kind), []).append(pair_id)
+    return changes
+
+
+def describe_changes(
+    conn: sqlite3.Connection, changes: Mapping[tuple[str, str], list[int]]
+) -> str:
+    """One sentence per changed table, naming the first images or pairs."""
+    parts = []
+    for (table, kind), ids in sorted(changes.items()):
+        if table in sch.PAIR_TABLES:
+            parts.append(
+                f"{table} rows of {len(ids)} pair(s) {kind} ({_pair_names(conn, ids)})"
+            )
+        else:
+            names = dict(conn.execute("SELECT image_id, name FROM images"))
+            shown = ", ".join(str(names.get(i, i)) for i in ids[:4])
+            parts.append(f"{table} of {len(ids)} image(s) {kind} ({shown})")
+    return "; ".join(parts)
+
+
+def _drop_vc_matches(conn: sqlite3.Connection, table: str, pair_id: int) -> None:
+    """Keep a user's row, without the matches that index VC keypoints."""
+    num_classic = dict(
+        conn.execute("SELECT image_id, num_classic_keypoints FROM colmap_vc_images")
+    )
+    image_id1, image_id2 = sch.images_from_pair_id(pair_id)
+    rows, data = conn.execute(
+        f"SELECT rows, data FROM {table} WHERE pair_id = ?", (pair_id,)
+    ).fetchone()
+    matches = sch.decode_matches(data, rows)
+    limits = np.array(
+        [num_classic.get(image_id1, 2**62), num_classic.get(image_id2, 2**62)]
+    )
+    kept = matches[(matches < limits).all(axis=1)]
+    conn.execute(
+        f"UPDATE {table} SET rows = ?, cols = 2, data = ? WHERE pair_id = ?",
+        (len(kept), sch.encode_matches(kept), pair_id),
+    )
+
+
+def require_strippable(
+    conn: sqlite3.Connection, *, force: bool = False
+) -> Mapping[tuple[str, str], list[int]]:
+    """The user's changes since augment; ValueError when strip cannot restore.
+
+    Raises when colmap-vc's tables are incomplete, or (unless ``force``) when a row
+    colmap-vc wrote was changed or deleted since. Only reads.
+    """
+    missing = sch.missing_vc_tables(conn)
+    if missing:
+        raise ValueError(
+            "strip refused, nothing changed: colmap-vc's table(s) "
+            f"{', '.join(missing)} are missing, so the rows from before augment "
+            "cannot be restored exactly; restore the database from a backup, or "
+            "re-create it with COLMAP (feature extraction and matching)"
+        )
+    changes = changes_since_write(conn)
+    if changes and not force:
+        raise ValueError(
+            "strip refused, nothing changed: "
+            + describe_changes(conn, changes)
+            + " after colmap-vc augment. Restoring would overwrite them with the "
+            "rows from before augment. `colmap-vc strip --force` keeps your rows "
+            "instead (it only removes colmap-vc's VC matches from them; rows you "
+            "deleted stay deleted, keypoints you re-extracted stay as they are)"
+        )
+    return changes
+
+
+def strip_rows(conn: sqlite3.Connection, *, force: bool = False) -> dict[str, Any]:
     """Restore every row colmap-vc changed and drop its tables.
 
+    Refuses (ValueError, nothing changed) when a row colmap-vc wrote was changed or
+    deleted since; with ``force`` such rows stay as the user left them, minus the
+    matches that index VC keypoints, and only untouched rows are restored.
     Returns the fields of :class:`colmap_vc.database.StripSummary`.
     """
     vc_tables = sch.vc_table_names(conn)
     restored = {"keypoints": 0, "descriptors": 0}
     moved = {table: (0, 0) for table in sch.PAIR_TABLES}
+    num_kept = 0
     if "colmap_vc_state" in vc_tables:
+        changes = require_strippable(conn, force=force)
+        for (table, _kind), ids in changes.items():
+            num_kept += len(ids)
+            if table in sch.PAIR_TABLES:
+                for pair_id in ids:
+                    if _kind == "changed":
+                        _drop_vc_matches(conn, table, pair_id)
+                    conn.execute(
+                        "DELETE FROM colmap_vc_backup_pairs WHERE tbl = ? AND "
+                        "pair_id = ?",
+                        (table, pair_id),
+                    )
+                    conn.execute(
+                        f"DELETE FROM {sch.backup_table(table)} WHERE pair_id = ?",
+                        (pair_id,),
+                    )
+            else:
+                conn.executemany(
+                    "DELETE FROM colmap_vc_backup_features WHERE tbl = ? AND "
+                    "image_id = ?",
+                    [(table, i) for i in ids],
+                )
         backups = conn.execute(
-            "SELECT tbl, image_id, num_rows, num_bytes, data_is_null, sha256 "
+            "SELECT tbl, image_id, num_rows, num_bytes, data_is_null "
             "FROM colmap_vc_backup_features ORDER BY tbl, image_id"
         ).fetchall()
-        for table, image_id, num_rows, num_bytes, is_null, digest in backups:
-            row = conn.execute(
+        for table, image_id, num_rows, num_bytes, is_null in backups:
+            data = conn.execute(
                 f"SELECT data FROM {table} WHERE image_id = ?", (image_id,)
-            ).fetchone()
-            original = None if row is None or is_null else (row[0] or b"")[:num_bytes]
-            if row is None or sch.sha256(original) != digest:
-                raise RuntimeError(
-                    f"{table} of image {image_id} changed since colmap-vc wrote them: "
-                    "cannot restore; re-run feature extraction and matching instead"
-                )
+            ).fetchone()[0]
+            original = None if is_null else (data or b"")[:num_bytes]
             conn.execute(
                 f"UPDATE {table} SET rows = ?, data = ? WHERE image_id = ?",
                 (num_rows, original, image_id),
@@ -383,4 +523,5 @@ def strip_rows(conn: sqlite3.Connection) -> dict[str, Any]:
         "num_geometries_restored": moved["two_view_geometries"][0],
         "num_geometries_deleted": moved["two_view_geometries"][1],
         "num_tables_dropped": len(vc_tables),
+        "num_user_rows_kept": num_kept,
     }
