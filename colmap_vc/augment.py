@@ -648,6 +648,8 @@ def run(
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     views = database.read_views(database_path)
+    if not options.dry_run:
+        database.check_before_write(database_path)  # before the work, not after
     sizes = {
         name: (views.cameras[int(c)].width, views.cameras[int(c)].height)
         for name, c in zip(views.image_names, views.camera_ids, strict=True)

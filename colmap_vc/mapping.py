@@ -12,6 +12,7 @@ import dataclasses
 import enum
 import logging
 import shutil
+import tempfile
 import time
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -20,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from . import database
+from . import database, outputs
 from .evaluation import relative_pose, rotation_angle_deg
 from .keypoint_ba import (
     KeypointBaOptions,
@@ -479,17 +480,37 @@ def run(
         raise FileNotFoundError(f"database not found: {database_path}")
     if not image_dir.is_dir():
         raise FileNotFoundError(f"image folder not found: {image_dir}")
-    if output_dir.exists() and any(output_dir.iterdir()):
-        if not overwrite:
-            raise FileExistsError(
-                f"{output_dir} exists and is not empty (use --overwrite)"
-            )
-        _check_removable(output_dir, database_path, image_dir, priors_path)
-        shutil.rmtree(output_dir)
-    output_dir.mkdir(parents=True, exist_ok=True)
-    (output_dir / OUTPUT_MARKER).write_text(
-        "written by colmap-vc map; `map --overwrite` may replace this folder\n"
+    outputs.prepare_output_dir(
+        output_dir,
+        "map",
+        overwrite=overwrite,
+        inputs=[database_path, image_dir, *([priors_path] if priors_path else [])],
     )
+    # pycolmap's mappers open their database read-write and migrate its schema:
+    # they get a copy, the user's database is only read (docs/database.md).
+    with tempfile.TemporaryDirectory(prefix=".work-", dir=output_dir) as work:
+        copy = database.snapshot(database_path, Path(work) / "database.db")
+        rec, summary = _map_copy(copy, image_dir, output_dir, options, priors_path)
+    logger.info(
+        "mapping: %d model(s); the largest registers %d/%d images (%.1f s)",
+        summary.num_models,
+        summary.num_registered,
+        summary.num_images,
+        summary.elapsed_s,
+    )
+    for name, reason in summary.unregistered.items():
+        logger.info("not registered: %s: %s", name, reason)
+    return rec, summary
+
+
+def _map_copy(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    options: MappingOptions,
+    priors_path: Path | None,
+) -> tuple[pycolmap.Reconstruction, MappingSummary]:
+    """:func:`run` on a copy of the user's database (pycolmap may write to it)."""
     views = database.read_views(database_path)
     num_images = len(views.image_names)
     static = _static_cameras(options, database_path, views.image_names)
@@ -598,9 +619,7 @@ def run(
     reasons = {**_why_unregistered(database_path, best), **left_out}
     if best is None:
         why = "; ".join(f"{n}: {r}" for n, r in list(reasons.items())[:5])
-        raise RuntimeError(
-            f"the mapper found no model in {database_path} ({num_images} images). {why}"
-        )
+        raise RuntimeError(f"the mapper found no model ({num_images} images). {why}")
     summary = MappingSummary(
         num_models=len(models),
         num_images=num_images,
@@ -609,41 +628,11 @@ def run(
         model_dir=output_dir / str(best_key),
         elapsed_s=elapsed,
     )
-    logger.info(
-        "mapping: %d model(s); the largest registers %d/%d images (%.1f s)",
-        summary.num_models,
-        summary.num_registered,
-        num_images,
-        elapsed,
-    )
-    for name, reason in reasons.items():
-        logger.info("not registered: %s: %s", name, reason)
     return best, summary
 
 
-OUTPUT_MARKER = ".colmap-vc-map"
+OUTPUT_MARKER = outputs.marker_name("map")
 """File `map` writes into its output folder: `--overwrite` removes only such folders."""
-
-
-def _check_removable(
-    output_dir: Path, database_path: Path, image_dir: Path, priors_path: Path | None
-) -> None:
-    """Refuse to remove a folder colmap-vc did not write, or one holding the inputs."""
-    out = output_dir.resolve()
-    inputs = [database_path, image_dir, *([priors_path] if priors_path else [])]
-    for path in inputs:
-        p = Path(path).resolve()
-        if p == out or out in p.parents:
-            raise FileExistsError(
-                f"--overwrite refused: {output_dir} holds the input {path}; choose "
-                "another --output-path (nothing was removed)"
-            )
-    if not (output_dir / OUTPUT_MARKER).is_file():
-        raise FileExistsError(
-            f"--overwrite refused: {output_dir} was not written by colmap-vc map (no "
-            f"{OUTPUT_MARKER} marker); remove it yourself or choose another "
-            "--output-path (nothing was removed)"
-        )
 
 
 def _static_cameras(
@@ -689,10 +678,19 @@ def _load_priors(
     """The priors given, else those `augment` recorded in the database, else None."""
     if priors_path is None:
         recorded = database.read_run_info(database_path).get("priors")
-        if not recorded or not Path(recorded).exists():
+        if not recorded:
             return None
-        priors_path = Path(recorded)
-    priors = read_priors(priors_path, known_image_names=image_names)
+        try:
+            if not Path(recorded).exists():
+                return None
+            priors = read_priors(Path(recorded), known_image_names=image_names)
+        except OSError as error:
+            raise OSError(
+                f"the priors augment used, {recorded} (recorded in the database), "
+                f"cannot be read ({error.strerror or error}): give --priors"
+            ) from error
+    else:
+        priors = read_priors(priors_path, known_image_names=image_names)
     if static is not None:  # the views augment wrote: one per static camera
         priors, _ = merge_priors(priors, static)
     return with_associated_ids(priors, database_path)
