@@ -2,13 +2,17 @@
 
 Subcommands are built by tyro from dataclasses whose fields embed the library's own
 options dataclasses, so defaults and help text live in one place.
-Exit codes: 0 success, 1 runtime failure, 2 usage error.
+Exit codes (README.md): 0 success, 1 the input or a file did not allow the run,
+2 usage error, 3 a bug, 130 Ctrl-C, 143 SIGTERM; see :func:`run_command`.
 """
 
 from __future__ import annotations
 
+import errno
 import json
 import logging
+import signal
+import sqlite3
 import sys
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -16,6 +20,7 @@ from pathlib import Path
 
 import tyro
 
+from . import database
 from .augment import AugmentOptions
 from .mapping import MappingOptions
 
@@ -177,6 +182,10 @@ class Strip:
 
     database: tyro.conf.Positional[Path]
     """COLMAP database."""
+    force: bool = False
+    """When rows colmap-vc wrote were changed after augment (e.g. re-matched), keep
+    them as they are now, minus colmap-vc's VC matches, instead of refusing; only
+    untouched rows get their pre-augment version back."""
     verbose: bool = False
     """Debug logging."""
 
@@ -344,8 +353,9 @@ def _run_frames(cmd: Frames) -> int:
 def _run_augment(cmd: Augment) -> int:
     from .augment import run
 
-    options = cmd.options
-    summary = run(cmd.database, cmd.priors, options)
+    if cmd.image_path is not None and not cmd.image_path.is_dir():
+        raise FileNotFoundError(f"image folder not found: {cmd.image_path}")
+    summary = run(cmd.database, cmd.priors, cmd.options)
     lines = [
         "| image 1 | image 2 | people | VCs | inliers | ratio | co-visible | virtual | "
         "keypoint | classic inliers |",
@@ -415,11 +425,14 @@ def _run_report(cmd: Report) -> int:
 def _run_strip(cmd: Strip) -> int:
     from .database import strip
 
-    result = strip(cmd.database)
+    result = strip(cmd.database, force=cmd.force)
     if not result.had_vcs:
         logger.info("%s has no colmap-vc VCs: nothing to strip", cmd.database)
-    else:
-        logger.info("stripped VCs from %s: %s", cmd.database, result)
+    elif result.num_user_rows_kept:
+        logger.info(
+            "%d row(s) changed after augment were kept as they are now (--force)",
+            result.num_user_rows_kept,
+        )
     return 0
 
 
@@ -463,6 +476,112 @@ RUNNERS = {
 }
 
 
+EXIT_OK, EXIT_FAILURE, EXIT_USAGE, EXIT_BUG = 0, 1, 2, 3
+EXIT_INTERRUPTED, EXIT_TERMINATED = 130, 143  # 128 + SIGINT, 128 + SIGTERM
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread so open transactions roll back."""
+
+
+def _raise_terminated(signum: int, frame: object) -> None:
+    raise Terminated
+
+
+def _database_of(cmd: object) -> Path | None:
+    path = getattr(cmd, "database", None)
+    return path if isinstance(path, Path) else None
+
+
+def _sqlite_message(exc: sqlite3.Error, cmd: object) -> str:
+    db = _database_of(cmd)
+    where = f"{db}: " if db else ""
+    text = str(exc)
+    if "readonly" in text or "read-only" in text:
+        hint = "make the database and its folder writable, or work on a copy"
+    elif "malformed" in text or "not a database" in text or "corrupt" in text:
+        hint = "the file is damaged: restore it from a backup or rebuild it with COLMAP"
+    elif "locked" in text or "busy" in text:
+        hint = "another process is writing it: close it and retry"
+    elif "no such table" in text or "no such column" in text:
+        hint = "a table is missing: was the database edited by hand? `colmap-vc strip`"
+        hint += " or a fresh COLMAP database"
+    elif "disk" in text or "full" in text:
+        hint = "free disk space and retry"
+    else:
+        hint = "see --verbose"
+    return f"{where}SQLite error: {text} ({hint})"
+
+
+def _os_message(exc: OSError) -> str:
+    if exc.filename is None or str(exc.filename) in str(exc.strerror or ""):
+        return str(exc)  # colmap-vc's own message, naming the file already
+    name = exc.filename
+    if exc.errno == errno.ENOSPC:
+        return f"no space left on the device of {name}: free space and retry"
+    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
+        return f"permission denied: {name} ({exc.strerror}): check its permissions"
+    if exc.errno == errno.EISDIR:
+        return f"{name} is a folder, a file was expected"
+    if exc.errno == errno.ENOTDIR:
+        return f"{name}: a part of this path is a file, a folder was expected"
+    return f"{name}: {exc.strerror or exc}"
+
+
+def _interrupted(cmd: object, signal_name: str) -> str:
+    db = _database_of(cmd)
+    if db is None:
+        return f"interrupted by {signal_name}"
+    changed = any(p.resolve() == db.resolve() for p in database.COMMITTED)
+    return f"interrupted by {signal_name}: {db} " + (
+        "was fully written before the interrupt"
+        if changed
+        else "is unchanged (colmap-vc writes it in one transaction, rolled back)"
+    )
+
+
+def run_command(cmd: object) -> int:
+    """Run a parsed command: every expected failure is one line and an exit code.
+
+    Exit codes: 0 success; 1 the input, a file or the data did not allow the run;
+    3 a bug in colmap-vc; 130 Ctrl-C; 143 SIGTERM (README.md). With ``--verbose``
+    the traceback is logged too.
+    """
+    verbose = bool(getattr(cmd, "verbose", False))
+    previous = signal.signal(signal.SIGTERM, _raise_terminated)
+    try:
+        return RUNNERS[type(cmd)](cmd)  # type: ignore[index]
+    except KeyboardInterrupt:
+        logger.error("%s", _interrupted(cmd, "Ctrl-C"), exc_info=verbose)
+        return EXIT_INTERRUPTED
+    except Terminated:
+        logger.error("%s", _interrupted(cmd, "SIGTERM"), exc_info=verbose)
+        return EXIT_TERMINATED
+    except sqlite3.Error as exc:
+        logger.error("%s", _sqlite_message(exc, cmd), exc_info=verbose)
+        return EXIT_FAILURE
+    except OSError as exc:
+        logger.error("%s", _os_message(exc), exc_info=verbose)
+        return EXIT_FAILURE
+    except (ValueError, RuntimeError) as exc:
+        logger.error("%s", exc, exc_info=verbose)
+        return EXIT_FAILURE
+    except MemoryError:
+        logger.error("out of memory: run fewer images at a time")
+        return EXIT_FAILURE
+    except Exception as exc:
+        logger.error(
+            "unexpected %s: %s. This is a bug in colmap-vc: please report it with the "
+            "output of the same command with --verbose",
+            type(exc).__name__,
+            exc,
+            exc_info=verbose,
+        )
+        return EXIT_BUG
+    finally:
+        signal.signal(signal.SIGTERM, previous)
+
+
 def main(argv: Sequence[str] | None = None) -> int:
     """Entry point of the `colmap-vc` console script."""
     try:
@@ -474,12 +593,10 @@ def main(argv: Sequence[str] | None = None) -> int:
         )
     except SystemExit as exc:  # tyro exits on --help (0) and on usage errors (2)
         return int(exc.code or 0)
+    except KeyboardInterrupt:
+        return EXIT_INTERRUPTED
     _setup_logging(getattr(cmd, "verbose", False))
-    try:
-        return RUNNERS[type(cmd)](cmd)
-    except (FileNotFoundError, FileExistsError, ValueError, RuntimeError) as exc:
-        logger.error("%s", exc)
-        return 1
+    return run_command(cmd)
 
 
 if __name__ == "__main__":

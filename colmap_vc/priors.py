@@ -394,7 +394,15 @@ def _parse_doc(
         for name, entry in images_doc.items()
     }
     if js.unknown:
-        logger.warning("%s: ignoring unknown entries %s", json_path, sorted(js.unknown))
+        unknown = sorted(js.unknown)
+        more = f" and {len(unknown) - 6} more" if len(unknown) > 6 else ""
+        logger.warning(
+            "%s: ignoring %d unknown entries: %s%s",
+            json_path,
+            len(unknown),
+            ", ".join(unknown[:6]),
+            more,
+        )
     return ScenePriors(images=images, version=version)
 
 
@@ -556,10 +564,25 @@ def write_priors(
     }
     json_path = out_dir / PRIORS_JSON
     _parse_doc(doc, json_path, staged.__getitem__, None, image_sizes)  # validate
+    # Arrays of an earlier priors.json here that this one does not list (stale).
+    stale = (
+        {
+            p
+            for sub in ("images", "templates")
+            for p in (out_dir / sub).rglob("*.npz")
+            if p not in staged
+        }
+        if json_path.is_file()
+        else set()
+    )
     for path, arrays in staged.items():
         _save_npz(path, arrays)
     tmp = json_path.with_name(PRIORS_JSON + ".tmp")
     tmp.write_text(json.dumps(doc, indent=1, ensure_ascii=False) + "\n", "utf-8")
     os.replace(tmp, json_path)  # last: a complete priors.json means complete arrays
+    for path in sorted(stale):
+        path.unlink()
+    if stale:
+        logger.info("removed %d array file(s) of the earlier priors", len(stale))
     logger.info("wrote priors of %d images to %s", len(doc_images), out_dir)
     return json_path

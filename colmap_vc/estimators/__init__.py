@@ -171,15 +171,25 @@ def run_estimator(
             name: views.cameras[int(cid)]
             for name, cid in zip(views.image_names, views.camera_ids, strict=True)
         }
+    unreadable: dict[str, str] = {}
     if cameras is None:
         names = _list_images(image_dir)
+        if not names:
+            raise FileNotFoundError(
+                f"no images ({', '.join(sorted(IMAGE_EXTENSIONS))}) in {image_dir}"
+            )
         logger.warning(
             "no cameras and no database: guessing intrinsics of %d images as COLMAP "
             "does (f = 1.2 max(width, height)); pass --database for real ones",
             len(names),
         )
         cameras = _guess_cameras(image_dir, names)
+        unreadable = {
+            n: f"cannot read {image_dir / n}" for n in names if n not in cameras
+        }
     names = sorted(cameras)
+    if not names:
+        raise FileNotFoundError(f"none of the images in {image_dir} can be read")
     if options.estimator is not EstimatorKind.MEDIAPIPE:
         raise ValueError(f"unknown estimator {options.estimator!r}")
     from colmap_vc.estimators import mediapipe as mp_estimator
@@ -200,7 +210,7 @@ def run_estimator(
         num_images=len(names),
         num_images_with_people=sum(1 for p in priors.images.values() if p.persons),
         num_persons=num_persons,
-        skipped=dict(report.skipped),
+        skipped={**unreadable, **report.skipped},
         report=report,
         seconds=time.perf_counter() - start,
     )
@@ -210,10 +220,10 @@ def run_estimator(
         summary.num_images_with_people,
         len(names),
         summary.seconds,
-        len(report.skipped),
+        len(summary.skipped),
         path,
     )
-    for name, reason in report.skipped.items():
+    for name, reason in summary.skipped.items():
         logger.info("  skipped %s: %s", name, reason)
     return summary
 
