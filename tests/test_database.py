@@ -701,3 +701,72 @@ def test_mappers_run_on_augmented_database(
         reconstruction = pycolmap.Reconstruction(out / "0")
     assert reconstruction.num_reg_images() == NUM_IMAGES
     assert _vc_observations(reconstruction, num_classic) > 100
+
+
+def test_colmap_vc_map_never_changes_the_database(
+    db: Path, vcs: tuple, scene_dir: Path, tmp_path: Path
+) -> None:
+    """`map` reads: the file is byte-identical, a 3.8 database keeps its schema, and
+    `strip` still restores the tables from before `augment` (issue 13, harm 2)."""
+    import hashlib
+
+    from colmap_vc import mapping
+
+    original = database.table_checksums(db)
+    database.write_virtual_correspondences(db, *vcs)
+    digest = hashlib.sha256(db.read_bytes()).hexdigest()
+    conn = sqlite3.connect(db)
+    tables = database_schema.table_names(conn)
+    conn.close()
+    mapping.run(db, scene_dir / "images", tmp_path / "sparse")
+    assert hashlib.sha256(db.read_bytes()).hexdigest() == digest
+    conn = sqlite3.connect(db)
+    assert database_schema.table_names(conn) == tables  # no frames/rigs added
+    conn.close()
+    database.strip(db)
+    assert database.table_checksums(db) == original
+
+
+def test_strip_refuses_after_user_changes_and_force_keeps_them(
+    db: Path, vcs: tuple
+) -> None:
+    """The user re-matches one pair and deletes another after augment: strip refuses
+    with nothing changed; --force keeps both edits and leaves no VC index behind
+    (issue 13, harm 3)."""
+    original = database.table_checksums(db)
+    views = database.read_views(db)
+    num_classic = dict(
+        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
+    )
+    database.write_virtual_correspondences(db, *vcs)
+    pair_ids = [
+        row[0]
+        for row in sqlite3.connect(db).execute(
+            "SELECT pair_id FROM matches WHERE rows > 1 ORDER BY pair_id"
+        )
+    ]
+    changed, deleted = pair_ids[0], pair_ids[1]
+    _sql(
+        db,
+        "UPDATE matches SET data = substr(data, 1, 8 * (rows - 1)), rows = rows - 1 "
+        f"WHERE pair_id = {changed}",
+        f"DELETE FROM matches WHERE pair_id = {deleted}",
+    )
+    edited = database.table_checksums(db)
+    with pytest.raises(ValueError, match="strip refused, nothing changed") as error:
+        database.strip(db)
+    assert "matches rows of 1 pair(s) changed" in str(error.value)
+    assert "matches rows of 1 pair(s) deleted" in str(error.value)
+    assert database.table_checksums(db) == edited
+
+    database.strip(db, force=True)
+    after = database.table_checksums(db)
+    assert not [t for t in after if t.startswith("colmap_vc_")]
+    for table in ("keypoints", "descriptors", "two_view_geometries"):
+        assert after[table] == original[table], table
+    conn = sqlite3.connect(db)
+    kept = dict(conn.execute("SELECT pair_id, rows FROM matches"))
+    conn.close()
+    assert deleted not in kept  # the user's deletion stays
+    assert kept[changed] > 0  # the user's re-match stays, minus the VC matches
+    _assert_no_vc_in_matches(db, num_classic)
