@@ -32,7 +32,7 @@ from common import DOCS, OUT, ROOT, machine, replace_section, setup_logging, wri
 
 from colmap_vc import cli, database
 from colmap_vc.evaluation import THRESHOLDS_DEG, Metrics, evaluate_poses, pose_auc
-from colmap_vc.keypoint_ba import person_identities
+from colmap_vc.keypoint_tracks import person_identities
 from colmap_vc.priors import read_priors
 
 logger = logging.getLogger("bench.realdata")

@@ -22,13 +22,10 @@ import numpy as np
 import pycolmap
 
 from . import database, outputs
+from .estimators.body import anny_keypoint_mirror
 from .evaluation import relative_pose, rotation_angle_deg
-from .keypoint_ba import (
-    KeypointBaOptions,
-    bundle_adjust_inplace,
-    keypoint_bundle_adjustment,
-    person_identities,
-)
+from .keypoint_ba import KeypointBaOptions, keypoint_bundle_adjustment
+from .keypoint_tracks import bundle_adjust_inplace, person_identities
 from .meshalign import mesh_alignment_poses
 from .priors import read_priors
 from .static_cameras import StaticCameras, merge_priors, parse_static_cameras
@@ -340,7 +337,13 @@ def two_view_initialised(
 
 
 def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> float:
-    """Median rotation difference (deg) of a model's and the meshes' relative poses."""
+    """How far a model's relative rotations are from the meshes' (deg): per image the
+    median over its pairs, then the median over the images.
+
+    One image whose prior is turned front to back spoils all of its pairs, half the
+    pairs of four images; the median of the per-image medians still sees the other
+    images agree (from 4 images on), so one bad prior does not reject a model.
+    """
     names = {im.name for im in rec.images.values() if im.has_pose}
     mesh = mesh_alignment_poses(priors, image_names=names)
     model = {
@@ -349,19 +352,47 @@ def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> fl
         if im.has_pose
     }
     common = sorted(set(mesh) & set(model))
-    diffs = [
-        rotation_angle_deg(
-            relative_pose(model[a], model[b])[:, :3]
-            @ relative_pose(mesh[a], mesh[b])[:, :3].T
+    if len(common) < 2:
+        return 0.0
+    per_image = [
+        np.median(
+            [
+                rotation_angle_deg(
+                    relative_pose(model[a], model[b])[:, :3]
+                    @ relative_pose(mesh[a], mesh[b])[:, :3].T
+                )
+                for b in common
+                if b != a
+            ]
         )
-        for i, a in enumerate(common)
-        for b in common[i + 1 :]
+        for a in common
     ]
-    return float(np.median(diffs)) if diffs else 0.0
+    return float(np.median(per_image))
+
+
+def _keypoint_mirror(
+    database_path: Path, priors: ScenePriors | None
+) -> dict[int, int] | None:
+    """Template track id -> its left/right counterpart's, for the camera check."""
+    if priors is None:
+        return None
+    persons = [p for ip in priors.images.values() for p in ip.persons]
+    perm = anny_keypoint_mirror(persons)
+    if perm is None:
+        return None
+    run = database.read_run_info(database_path).get("options", {})
+    offset = int(run.get("matching", {}).get("num_samples", 0))
+    if offset <= 0:
+        return None
+    return {offset + k: offset + int(j) for k, j in enumerate(perm.tolist())}
 
 
 def leave_out_prior_outliers_inplace(
-    rec: pycolmap.Reconstruction, priors: ScenePriors, max_deviation_deg: float
+    rec: pycolmap.Reconstruction,
+    priors: ScenePriors,
+    max_deviation_deg: float,
+    *,
+    exempt: frozenset[str] = frozenset(),
 ) -> dict[str, str]:
     """Deregister images whose pose contradicts the meshes (image name -> why).
 
@@ -378,7 +409,7 @@ def leave_out_prior_outliers_inplace(
         for i, im in rec.images.items()
         if im.has_pose
     }
-    mesh = mesh_alignment_poses(priors, image_names=set(model))
+    mesh = mesh_alignment_poses(priors, image_names=set(model) - exempt)
     placed = sorted(set(mesh) & set(model))
     left: dict[str, str] = {}
     while len(placed) >= 3:
@@ -596,17 +627,27 @@ def _map_copy(
                 deviation,
             )
     left_out: dict[str, str] = {}
+    mirrored: tuple[str, ...] = ()
     if best is not None and options.keypoint_ba:
         best, kba = keypoint_bundle_adjustment(
-            database_path, best, options.keypoint_ba_options
+            database_path,
+            best,
+            options.keypoint_ba_options,
+            mirror=_keypoint_mirror(database_path, priors),
         )
         models[best_key] = best
         left_out.update(kba.left_out or {})
+        mirrored = kba.mirrored
     if best is not None and priors is not None:
         # On the final poses: the keypoint BA can carry a camera far from its start.
+        # An image re-posed with left and right exchanged has a mesh turned front
+        # to back: the meshes cannot judge it.
         left_out.update(
             leave_out_prior_outliers_inplace(
-                best, priors, options.max_image_prior_deviation_deg
+                best,
+                priors,
+                options.max_image_prior_deviation_deg,
+                exempt=frozenset(mirrored),
             )
         )
         if left_out:

@@ -9,11 +9,13 @@ import pycolmap
 import pytest
 
 from colmap_vc import augment, database, mapping
+from colmap_vc.camera_check import check_cameras_inplace
 from colmap_vc.evaluation import evaluate_reconstruction
-from colmap_vc.keypoint_ba import (
-    KeypointBaOptions,
-    keypoint_bundle_adjustment,
+from colmap_vc.keypoint_ba import KeypointBaOptions, keypoint_bundle_adjustment
+from colmap_vc.keypoint_tracks import (
+    KeypointTracks,
     keypoint_tracks,
+    mirrored_tracks,
     person_identities,
     triangulate_tracks,
 )
@@ -100,8 +102,6 @@ def test_keypoint_ba_pulls_perturbed_poses_back(dome_scene, mapped, rng):
 
 def _tracks_from_points(rec, points, rng, noise_px=1.0):
     """Keypoint tracks of 3D points seen by every camera of ``rec``."""
-    from colmap_vc.keypoint_ba import KeypointTracks
-
     track, image_id, xy = [], [], []
     for i, image in sorted(rec.images.items()):
         T = image.cam_from_world().matrix()
@@ -120,8 +120,6 @@ def test_camera_check_re_poses_or_leaves_out_a_wrong_camera(dome_scene, rng, key
     out when they fit nothing; the other cameras are untouched."""
     from scipy.spatial.transform import Rotation
 
-    from colmap_vc.keypoint_ba import KeypointBaOptions, check_cameras_inplace
-
     rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     points = rng.normal(0, 0.4, (30, 3)) * [1, 2, 1] + [0, -0.9, 0]  # a body's extent
     tracks = _tracks_from_points(rec, points, rng)
@@ -136,7 +134,7 @@ def test_camera_check_re_poses_or_leaves_out_a_wrong_camera(dome_scene, rng, key
     rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
         pycolmap.Rotation3d(turn @ T[:, :3]), turn @ T[:, 3]
     )
-    relocalised, left_out = check_cameras_inplace(
+    relocalised, left_out, _ = check_cameras_inplace(
         rec, tracks, KeypointBaOptions(loss_scale_px=4.0)
     )
     if keypoints == "right":
@@ -150,3 +148,82 @@ def test_camera_check_re_poses_or_leaves_out_a_wrong_camera(dome_scene, rng, key
         if other != name:  # the others stay where they were (to BA noise)
             got = rec.find_image_with_name(other).cam_from_world().matrix()
             assert np.abs(got[:, :3] @ truth[other][:, :3].T - np.eye(3)).max() < 0.02
+
+
+def test_camera_check_exchanges_left_and_right(dome_scene, rng):
+    """A camera whose pose estimator labelled the person's left as right (seen from
+    the back, taken for the front) sits on the mirror side: the check re-poses it
+    with left and right exchanged and its keypoints join their counterparts'
+    tracks, so the bundle adjustment keeps it there."""
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    # 12 "left" points at x < 0 and their mirror images: track k pairs with k ^ 1.
+    left = rng.normal(0, 0.3, (12, 3)) * [1, 2, 1] + [-0.25, -0.9, 0]
+    points = np.repeat(left, 2, axis=0)
+    points[1::2, 0] = -points[1::2, 0] + 0.1 * rng.normal(size=12)
+    tracks = _tracks_from_points(rec, points, rng)
+    name = sorted(im.name for im in rec.images.values())[1]
+    image_id = rec.find_image_with_name(name).image_id
+    swap = np.arange(len(points)) ^ 1
+    xy = tracks.xy_img.copy()
+    # Its detection of keypoint k is where keypoint k ^ 1 is: labels exchanged.
+    sel = np.flatnonzero(tracks.image_id == image_id)
+    sel = sel[np.argsort(tracks.track[sel])]
+    xy[sel] = tracks.xy_img[sel][swap]
+    idx = np.zeros(len(tracks.track), dtype=np.int64)
+    for i in np.unique(tracks.image_id):  # keypoint k is point2D k of every image
+        sel = tracks.image_id == i
+        idx[sel] = tracks.track[sel]
+        rec.image(int(i)).points2D = pycolmap.Point2DList(
+            [pycolmap.Point2D(p) for p in xy[sel][np.argsort(tracks.track[sel])]]
+        )
+    keys = np.stack([np.zeros(len(points), np.int64), 2000 + np.arange(len(points))], 1)
+    tracks = KeypointTracks(
+        track=tracks.track, image_id=tracks.image_id, point2D_idx=idx, xy_img=xy,
+        keys=keys,
+    )
+    mirror = {2000 + k: 2000 + int(swap[k]) for k in range(len(points))}
+    assert (mirrored_tracks(tracks, mirror) == swap).all()
+    truth = {im.name: im.cam_from_world().matrix() for im in rec.images.values()}
+    options = KeypointBaOptions(loss_scale_px=4.0, min_check_points=8)
+    # Without the mirror the camera is left out; with it, re-posed where it is.
+    plain = pycolmap.Reconstruction(rec)
+    relocalised, left_out, mirrored = check_cameras_inplace(plain, tracks, options)
+    assert list(left_out) == [name] and not mirrored
+    num_classic = dict.fromkeys(rec.images, 0)  # every keypoint is a VC
+    relocalised, left_out, mirrored = check_cameras_inplace(
+        rec, tracks, options, mirror=mirror, num_classic=num_classic
+    )
+    assert mirrored == [name] == relocalised and not left_out
+    for other, T in truth.items():
+        got = rec.find_image_with_name(other).cam_from_world().matrix()
+        assert np.abs(got[:, :3] @ T[:, :3].T - np.eye(3)).max() < 0.02, other
+    assert len(rec.points3D) == len(points)  # rebuilt, one per keypoint
+
+
+def test_anny_keypoint_mirror_exchanges_named_pairs():
+    """The 17 joints and 24 keypoints of Anny priors: left <-> right by name, the
+    centre line stays; other templates have no names, hence no mirror."""
+    import dataclasses
+
+    from colmap_vc.estimators.body import anny_keypoint_mirror, anny_keypoint_names
+    from colmap_vc.structs import PersonPrior
+    from colmap_vc.synthetic.bodies import load_bodies
+
+    names = anny_keypoint_names(load_bodies())
+    base = PersonPrior(
+        vertices_cam=np.eye(3) + np.array([0.0, 0.0, 3.0]),
+        faces=np.array([[0, 1, 2]]),
+        template="anny",
+    )
+    for k in (17, 24):
+        person = dataclasses.replace(base, keypoints_xy=np.zeros((k, 2)))
+        perm = anny_keypoint_mirror([person, person])
+        assert sorted(perm.tolist()) == list(range(k))
+        assert (perm[perm] == np.arange(k)).all()
+        for i, j in enumerate(perm.tolist()):
+            a, b = names[i], names[j]
+            assert a == b if "left" not in a and "right" not in a else a != b
+            assert a.replace("left", "right") == b or b.replace("left", "right") == a
+    other = dataclasses.replace(base, template="smpl", keypoints_xy=np.zeros((17, 2)))
+    person = dataclasses.replace(base, keypoints_xy=np.zeros((17, 2)))
+    assert anny_keypoint_mirror([person, other]) is None

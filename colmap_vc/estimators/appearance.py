@@ -27,6 +27,19 @@ _LIMBS = {
     "shins": ((_L_KNEE, _L_ANKLE), (_R_KNEE, _R_ANKLE)),
 }
 _LIMB_WIDTH = {"upper_arms": 0.25, "thighs": 0.35, "shins": 0.25}  # x torso height
+NUM_LANDMARKS = 33
+LANDMARK_INDEX: dict[str, int] = {
+    f"{side}_{joint}": index
+    for joint, (left, right) in {
+        "shoulder": (_L_SHOULDER, _R_SHOULDER),
+        "elbow": (_L_ELBOW, _R_ELBOW),
+        "hip": (_L_HIP, _R_HIP),
+        "knee": (_L_KNEE, _R_KNEE),
+        "ankle": (_L_ANKLE, _R_ANKLE),
+    }.items()
+    for side, index in (("left", left), ("right", right))
+}
+"""BlazePose index of every landmark the regions use, by joint name."""
 
 
 def describe_person(

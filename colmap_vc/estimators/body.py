@@ -10,12 +10,13 @@ and is batched over poses, so a finite-difference Jacobian costs one FK loop.
 from __future__ import annotations
 
 import functools
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
 import pycolmap
 
-from colmap_vc.structs import FloatArray, IndexArray
+from colmap_vc.structs import FloatArray, IndexArray, PersonPrior
 from colmap_vc.synthetic import bodies as body_lib
 from colmap_vc.synthetic.bodies import BodyModel
 
@@ -62,6 +63,34 @@ SURFACE_LANDMARKS = (
     "left_foot_index",
     "right_foot_index",
 )
+
+
+def anny_keypoint_names(model: BodyModel) -> tuple[str, ...]:
+    """Names of the keypoints of an Anny prior (bundled estimator, synthetic world):
+    the model's joints, then the surface landmarks."""
+    return (*model.joint_names, *SURFACE_LANDMARKS)
+
+
+def keypoint_mirror(names: tuple[str, ...]) -> IndexArray:
+    """Keypoint i of a person labelled left for right is keypoint ``mirror[i]``."""
+    return np.array([names.index(_swapped(n)) for n in names], dtype=np.int64)
+
+
+def anny_keypoint_mirror(persons: Sequence[PersonPrior]) -> IndexArray | None:
+    """The left/right exchange of the keypoints these persons share, when all are
+    Anny priors with the same keypoints (the bundled estimator's 24, the synthetic
+    world's 17 joints); None otherwise (other templates do not name theirs)."""
+    sizes = {len(p.keypoints_xy) for p in persons if p.keypoints_xy is not None}
+    if len(sizes) != 1 or any(p.template != TEMPLATE_NAME for p in persons):
+        return None
+    names = anny_keypoint_names(body_lib.load_bodies())
+    (k,) = sizes
+    try:
+        return keypoint_mirror(names[:k]) if k <= len(names) else None
+    except ValueError:  # a counterpart beyond the first k names
+        return None
+
+
 # Bone groups posed by the fit: (name, bones); a chain shares one rotation, split
 # evenly among its bones.
 GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (

@@ -12,6 +12,7 @@ from colmap_vc.estimators.body import (
     SURFACE_LANDMARKS,
     TEMPLATE_NAME,
     FitTemplate,
+    anny_keypoint_names,
     landmark_index,
     load_template,
     project_clamped,
@@ -119,7 +120,7 @@ def prior_from_fit(
     )
     surface_cam = template.weights[rows] @ fitted.vertices_cam[template.vertex_idx]
     kp_cam = np.concatenate([fitted.joints_cam, surface_cam])
-    kp_names = (*model.joint_names, *SURFACE_LANDMARKS)
+    kp_names = anny_keypoint_names(model)
     kp_xy = project_clamped(camera, kp_cam)
     kp_valid = np.zeros(len(kp_names), dtype=bool)
     for k, name in enumerate(kp_names):  # loop over 24 names

@@ -18,6 +18,7 @@ in docs/synthetic.md), per image and per visible person:
 
 from __future__ import annotations
 
+import dataclasses
 import math
 from dataclasses import dataclass
 
@@ -25,7 +26,8 @@ import numpy as np
 import pycolmap
 
 from .. import raycast
-from ..structs import FloatArray, IndexArray
+from ..estimators import appearance
+from ..structs import FloatArray, IndexArray, PersonPrior
 from .bodies import BodyModel, joints, pose_body
 from .noise import NoiseLevel, PersonView
 from .render import FIRST_PERSON
@@ -247,3 +249,25 @@ def _project_bbox_pixels(camera: pycolmap.Camera, verts_cam: FloatArray) -> Floa
     ys = np.arange(int(lo[1]), int(hi[1])) + 0.5
     gx, gy = np.meshgrid(xs, ys)
     return np.stack([gx.ravel(), gy.ravel()], axis=1)
+
+
+def with_appearance(
+    person: PersonPrior, image_rgb: np.ndarray, joint_names: tuple[str, ...]
+) -> PersonPrior:
+    """The person's clothing colours, as the bundled estimator measures them.
+
+    The same regions (:mod:`colmap_vc.estimators.appearance`) are cut from the
+    prior's own noisy joints and predicted silhouette in the rendered image, so
+    the colours carry the prior's errors, other people's occlusions and, for a false
+    detection, whatever background it covers.
+    """
+    if person.keypoints_xy is None or person.keypoints_valid is None:
+        return person
+    xy = np.zeros((appearance.NUM_LANDMARKS, 2))
+    seen = np.zeros(appearance.NUM_LANDMARKS, dtype=bool)
+    for name, index in appearance.LANDMARK_INDEX.items():
+        j = joint_names.index(name)
+        xy[index] = person.keypoints_xy[j]
+        seen[index] = person.keypoints_valid[j]
+    colours = appearance.describe_person(image_rgb, xy, seen, person.mask)
+    return dataclasses.replace(person, appearance=colours)

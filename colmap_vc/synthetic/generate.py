@@ -38,6 +38,7 @@ from .detection import (
     false_person_view,
     landmark_visibility,
     miss_reason,
+    with_appearance,
 )
 from .gt import (
     FALSE_DETECTION,
@@ -254,7 +255,11 @@ def _detect(
     order = rng.permutation(len(kept))
     persons, true_ids = [], []
     for i in order:
-        person = predict_person(bodies, kept[i], camera, level, rng)
+        person = with_appearance(
+            predict_person(bodies, kept[i], camera, level, rng),
+            view.image,
+            bodies.joint_names,
+        )
         true_id = kept[i].person_id
         if not with_ids:
             pid = None

@@ -1,0 +1,234 @@
+"""Camera check: each camera against the keypoints other cameras triangulate.
+
+See :func:`check_cameras_inplace`. A wrong camera is worse than none: a camera that
+contradicts the others is re-posed where its keypoints fit (as labelled, or with its
+people's left and right exchanged) or left out, with the reason.
+"""
+
+from __future__ import annotations
+
+import logging
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pycolmap
+
+from .keypoint_tracks import (
+    KeypointTracks,
+    add_keypoint_points,
+    bundle_adjust_inplace,
+    delete_points_observing,
+    keypoint_observations,
+    mirrored_tracks,
+    relabelled,
+    subset,
+    triangulate_tracks,
+)
+from .structs import FloatArray
+
+if TYPE_CHECKING:
+    from .keypoint_ba import KeypointBaOptions
+
+logger = logging.getLogger(__name__)
+
+
+def residuals_px(
+    camera: pycolmap.Camera, cam_from_world: FloatArray, xy: FloatArray, X: FloatArray
+) -> FloatArray:
+    """Reprojection errors (N,) of points X (N, 3) against pixels xy (N, 2)."""
+    Xc = X @ cam_from_world[:, :3].T + cam_from_world[:, 3]
+    err = np.full(len(X), np.inf)
+    front = Xc[:, 2] > 1e-6
+    if front.any():
+        proj = np.asarray(camera.img_from_cam(Xc[front]))
+        err[front] = np.linalg.norm(proj - xy[front], axis=1)
+    return err
+
+
+def best_two_view_check(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    image_id: int,
+    others: list[int],
+    min_points: int,
+) -> tuple[float, FloatArray, FloatArray]:
+    """The smallest median error of image ``image_id``'s keypoints against the
+    points any two other cameras triangulate, with those 2D-3D correspondences."""
+    mine = tracks.image_id == image_id
+    best = (np.inf, np.zeros((0, 2)), np.zeros((0, 3)))
+    if not mine.any():
+        return best
+    image = rec.image(image_id)
+    camera = rec.camera(image.camera_id)
+    pose = image.cam_from_world().matrix()
+    for a, j in enumerate(others):  # loop over image pairs (a few dozen at most)
+        for k in others[a + 1 :]:
+            sub = subset(tracks, np.isin(tracks.image_id, [j, k]))
+            X, counts = triangulate_tracks(rec, sub)
+            pad = tracks.num_tracks - len(X)
+            X = np.r_[X, np.full((max(pad, 0), 3), np.nan)]
+            counts = np.r_[counts, np.zeros(max(pad, 0), np.int64)]
+            t = tracks.track[mine]
+            ok = (counts[t] == 2) & np.isfinite(X[t]).all(axis=1)
+            if ok.sum() < min_points:
+                continue
+            xy, pts = tracks.xy_img[mine][ok], X[t[ok]]
+            med = float(np.median(residuals_px(camera, pose, xy, pts)))
+            if med < best[0]:
+                best = (med, xy, pts)
+    return best
+
+
+def robust_pnp(
+    camera: pycolmap.Camera,
+    xy: FloatArray,
+    pts: FloatArray,
+    options: KeypointBaOptions,
+    max_error_px: float,
+) -> tuple[float, pycolmap.Rigid3d | None]:
+    """Robust PnP on keypoint 2D-3D pairs: (median error px, cam_from_world)."""
+    if len(xy) < options.min_check_points:
+        return np.inf, None
+    est = pycolmap.AbsolutePoseEstimationOptions()
+    est.ransac.max_error = max_error_px
+    est.ransac.random_seed = options.surface_seed
+    found = pycolmap.estimate_and_refine_absolute_pose(xy, pts, camera, est)
+    if found is None or found["num_inliers"] < options.min_check_points:
+        return np.inf, None
+    pose = found["cam_from_world"]
+    return float(np.median(residuals_px(camera, pose.matrix(), xy, pts))), pose
+
+
+def check_cameras_inplace(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    options: KeypointBaOptions,
+    *,
+    mirror: dict[int, int] | None = None,
+    num_classic: dict[int, int] | None = None,
+) -> tuple[list[str], dict[str, str], list[str]]:
+    """Each camera against keypoint points two *other* cameras triangulate.
+
+    A camera whose keypoints miss the points of every pair of other cameras (the
+    best pair's median error above ``max_check_ratio`` times the median camera's)
+    contradicts the rest: a prior turned front to back puts its camera on the
+    mirror side, consistently in every pair and cycle, and only the people's
+    asymmetric 3D pose shows it. It is re-posed by PnP on the best pair's points
+    when that fits as well as the other cameras do. Else, with ``mirror``, its
+    people's keypoints are tried with left and right exchanged: a pose estimator
+    that sees a person from the back but takes them for facing the camera labels
+    every left landmark right (pose2sim_single cam02 at t050 and t070). When that
+    fits, the camera is re-posed, its keypoints join their counterparts' tracks and
+    its surface VCs (from the mesh turned front to back) leave the model. Else the
+    camera is left out. Needs 4+ cameras (with 3, two cameras always agree with
+    each other). Cameras are visited in name order, worst first. Returns (re-posed
+    names, left out: reason, re-posed with left/right exchanged).
+    """
+    relocalised: list[str] = []
+    left_out: dict[str, str] = {}
+    mirrored: list[str] = []
+    partner = mirrored_tracks(tracks, mirror or {})
+    while True:
+        reg = sorted(
+            (i for i, im in rec.images.items() if im.has_pose),
+            key=lambda i: rec.image(i).name,  # name order, never the ids
+        )
+        if len(reg) < 4:
+            break
+        # The 6 cameras sharing most keypoints are enough witnesses.
+        obs = {i: set(tracks.track[tracks.image_id == i].tolist()) for i in reg}
+        witnesses, checks = {}, {}
+        for i in reg:
+            witnesses[i] = sorted(
+                (j for j in reg if j != i),
+                key=lambda j: (-len(obs[i] & obs[j]), rec.image(j).name),
+            )[:6]
+            checks[i] = best_two_view_check(
+                rec, tracks, i, witnesses[i], options.min_check_points
+            )
+        errs = {i: c[0] for i, c in checks.items() if np.isfinite(c[0])}
+        if len(errs) < 4:
+            break
+        logger.debug(
+            "camera check: %s",
+            {rec.image(i).name: round(e, 1) for i, e in errs.items()},
+        )
+        worst = max(errs, key=lambda i: (errs[i], rec.image(i).name))
+        typical = float(np.median([e for i, e in errs.items() if i != worst]))
+        limit = max(options.max_check_ratio * typical, options.loss_scale_px)
+        if errs[worst] <= limit:
+            break
+        image = rec.image(worst)
+        name = image.name
+        if name in relocalised or name in left_out:
+            break
+        camera = rec.camera(image.camera_id)
+        pnp, pose = robust_pnp(
+            camera, checks[worst][1], checks[worst][2], options, limit
+        )
+        if pnp <= limit:
+            rec.frame(image.frame_id).rig_from_world = pose
+            logger.warning(
+                "camera check: %s re-posed by PnP on the keypoints two other cameras "
+                "triangulate (median error %.0f px -> %.0f px; the median camera's "
+                "%.0f px)",
+                name,
+                errs[worst],
+                pnp,
+                typical,
+            )
+            relocalised.append(name)
+            bundle_adjust_inplace(rec, options.loss_scale_px)
+            continue
+        swapped = relabelled(tracks, worst, partner)
+        check = best_two_view_check(
+            rec, swapped, worst, witnesses[worst], options.min_check_points
+        )
+        swapped_pnp, swapped_pose = robust_pnp(
+            camera, check[1], check[2], options, limit
+        )
+        logger.debug(
+            "camera check: %s with left and right exchanged: %.0f px against the "
+            "best pair, PnP on %d points %.0f px (limit %.0f px)",
+            name,
+            check[0],
+            len(check[1]),
+            swapped_pnp,
+            limit,
+        )
+        if swapped_pnp <= limit and num_classic is not None:
+            rec.frame(image.frame_id).rig_from_world = swapped_pose
+            delete_points_observing(rec, keypoint_observations(tracks))
+            surface = [
+                k
+                for k, p in enumerate(rec.image(worst).points2D)  # loop over keypoints
+                if k >= num_classic[worst] and p.has_point3D()
+            ]
+            for k in surface:  # its surface VCs
+                rec.delete_observation(worst, k)
+            tracks = swapped
+            partner = mirrored_tracks(tracks, mirror or {})
+            add_keypoint_points(rec, tracks, options.min_track_length)
+            logger.warning(
+                "camera check: %s re-posed with its people's left and right "
+                "exchanged (the pose estimator saw them from the back as if from "
+                "the front): median error %.0f px -> %.0f px, the median camera's "
+                "%.0f px; its surface VCs are not used",
+                name,
+                errs[worst],
+                swapped_pnp,
+                typical,
+            )
+            relocalised.append(name)
+            mirrored.append(name)
+        else:
+            left_out[name] = (
+                f"left out: its keypoints miss the points the other cameras "
+                f"triangulate (median {errs[worst]:.0f} px, the median camera "
+                f"{typical:.0f} px) and no pose fits them, also with left and "
+                "right exchanged"
+            )
+            logger.warning("camera check: %s %s", name, left_out[name])
+            rec.deregister_frame(image.frame_id)
+        bundle_adjust_inplace(rec, options.loss_scale_px)
+    return relocalised, left_out, mirrored

@@ -1,0 +1,278 @@
+"""Keypoint tracks: the people's keypoints as multi-view tracks by identity.
+
+A keypoint VC (a landmark such as a knee or a heel) names the same 3D point in every
+view of the same person, so its multi-view track is known a priori: (person identity,
+keypoint). This module reads those tracks from an augmented database, triangulates
+them with a model's poses and puts them into the model; :mod:`colmap_vc.keypoint_ba`
+adjusts them, :mod:`colmap_vc.camera_check` checks each camera against them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from . import database
+from .structs import FloatArray, HitKind, IndexArray
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class KeypointTracks:
+    """Keypoint observations grouped into multi-view tracks by identity."""
+
+    track: IndexArray  # (O,) int64 track index of each observation, sorted
+    image_id: IndexArray  # (O,) int64
+    point2D_idx: IndexArray  # (O,) int64, in the image's full keypoint list
+    xy_img: FloatArray  # (O, 2) float64
+    keys: IndexArray | None = None  # (T, 2) int64: (identity, template track id)
+
+    def __post_init__(self) -> None:
+        n = self.track.shape[0]
+        for name in ("image_id", "point2D_idx"):
+            if getattr(self, name).shape != (n,):
+                raise ValueError(f"{name} has shape {getattr(self, name).shape}")
+        if self.xy_img.shape != (n, 2):
+            raise ValueError(f"xy_img has shape {self.xy_img.shape}")
+
+    @property
+    def num_tracks(self) -> int:
+        return int(self.track.max()) + 1 if len(self.track) else 0
+
+
+def person_identities(
+    associations: list[database.PersonAssociation],
+) -> dict[tuple[int, int], int]:
+    """(image_id, person_id) -> identity, by union-find over the associations."""
+    parent: dict[tuple[int, int], tuple[int, int]] = {}
+
+    def find(a: tuple[int, int]) -> tuple[int, int]:
+        parent.setdefault(a, a)
+        while parent[a] != a:
+            parent[a] = parent[parent[a]]
+            a = parent[a]
+        return a
+
+    for a in associations:  # loop over person pairs (a handful per image pair)
+        ra = find((a.image_id1, a.person_id1))
+        rb = find((a.image_id2, a.person_id2))
+        if ra != rb:
+            parent[max(ra, rb)] = min(ra, rb)
+    roots = sorted({find(k) for k in parent})
+    index = {r: i for i, r in enumerate(roots)}
+    return {k: index[find(k)] for k in parent}
+
+
+def keypoint_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTracks:
+    """The keypoint VCs of the given images, as tracks (person identity, keypoint).
+
+    A VC keypoint is a keypoint when some pair matched it as ``HitKind.KEYPOINT``; its
+    identity is its person's (``person_identities``) and its template track id.
+    """
+    views = database.read_views(database_path)
+    num_classic = dict(
+        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
+    )
+    vc_keypoints, pairs = database.read_virtual_correspondences(database_path)
+    identity = person_identities(database.read_person_associations(database_path))
+    is_kp: dict[int, np.ndarray] = {
+        v.image_id: np.zeros(len(v.track_id), dtype=bool) for v in vc_keypoints
+    }
+    for p in pairs:  # loop over image pairs, vectorized over VCs
+        kp = p.kind == HitKind.KEYPOINT
+        is_kp[p.image_id1][p.idx1[kp]] = True
+        is_kp[p.image_id2][p.idx2[kp]] = True
+    wanted = set(np.asarray(image_ids).tolist())
+    parts = []
+    for v in vc_keypoints:  # loop over images
+        if v.image_id not in wanted or not is_kp[v.image_id].any():
+            continue
+        rows = np.flatnonzero(is_kp[v.image_id])
+        ident = np.array(
+            [identity.get((v.image_id, int(p)), -1) for p in v.person_id[rows]],
+            dtype=np.int64,
+        )
+        ok = ident >= 0
+        rows = rows[ok]
+        parts.append(
+            (
+                ident[ok],
+                v.track_id[rows],
+                np.full(len(rows), v.image_id, dtype=np.int64),
+                num_classic[v.image_id] + rows,
+                v.xy_img[rows],
+            )
+        )
+    parts = [part for part in parts if len(part[0])]
+    if not parts:  # no keypoint VC of a person with an identity
+        z = np.zeros(0, dtype=np.int64)
+        return KeypointTracks(
+            track=z, image_id=z, point2D_idx=z, xy_img=np.zeros((0, 2))
+        )
+    ident, track_id, image_id, idx, xy = (
+        np.concatenate(a) for a in zip(*parts, strict=True)
+    )
+    # A chain of wrong associations can put two people of one image into one
+    # identity: such tracks would see an image twice, so they are left out.
+    _, track_of = np.unique(
+        np.stack([ident, track_id], axis=1), axis=0, return_inverse=True
+    )
+    track_of = track_of.ravel()
+    _, first, seen = np.unique(
+        np.stack([track_of, image_id], axis=1),
+        axis=0,
+        return_index=True,
+        return_counts=True,
+    )
+    bad = np.zeros(track_of.max() + 1, dtype=bool)
+    bad[track_of[first[seen > 1]]] = True
+    keep = ~bad[track_of]
+    ident, track_id, image_id, idx, xy = (
+        a[keep] for a in (ident, track_id, image_id, idx, xy)
+    )
+    keys, track = np.unique(
+        np.stack([ident, track_id], axis=1), axis=0, return_inverse=True
+    )
+    order = np.argsort(track, kind="stable")
+    return KeypointTracks(
+        track=track.ravel()[order].astype(np.int64),
+        image_id=image_id[order],
+        point2D_idx=idx[order],
+        xy_img=xy[order],
+        keys=keys.astype(np.int64),
+    )
+
+
+def mirrored_tracks(tracks: KeypointTracks, mirror: dict[int, int]) -> IndexArray:
+    """(T,) the track of the same person's left/right counterpart (-1: none).
+
+    ``mirror`` maps a template track id to its counterpart's (left knee -> right
+    knee); a track id absent from it has none.
+    """
+    if tracks.keys is None or not mirror:
+        return np.full(tracks.num_tracks, -1, dtype=np.int64)
+    src = np.array(sorted(mirror), dtype=np.int64)
+    dst = np.array([mirror[k] for k in src.tolist()], dtype=np.int64)
+    ident, tid = tracks.keys[:, 0], tracks.keys[:, 1]
+    pos = np.clip(np.searchsorted(src, tid), 0, len(src) - 1)
+    partner = np.where(src[pos] == tid, dst[pos], -1)
+    # keys are sorted (identity, track id): find (identity, partner) among them.
+    width = int(max(tracks.keys[:, 1].max(), dst.max())) + 2
+    code = tracks.keys[:, 0] * width + tracks.keys[:, 1]
+    want = ident * width + partner
+    at = np.clip(np.searchsorted(code, want), 0, len(code) - 1)
+    return np.where((partner >= 0) & (code[at] == want), at, -1).astype(np.int64)
+
+
+def triangulate_tracks(
+    rec: pycolmap.Reconstruction, tracks: KeypointTracks
+) -> tuple[FloatArray, IndexArray]:
+    """DLT point (T, 3) of each track (the model's poses) and its view count (T,).
+
+    A point behind any of its cameras (or at infinity) is NaN.
+    """
+    num = tracks.num_tracks
+    rows = np.zeros((len(tracks.track), 2, 4))
+    depth_row = np.zeros((len(tracks.track), 4))  # z of the point in its camera
+    for image_id in np.unique(tracks.image_id):  # loop over images, vectorized over obs
+        sel = tracks.image_id == image_id
+        image = rec.image(int(image_id))
+        T = image.cam_from_world().matrix()
+        uv = np.asarray(rec.camera(image.camera_id).cam_from_img(tracks.xy_img[sel]))
+        rows[sel, 0] = uv[:, :1] * T[2] - T[0]
+        rows[sel, 1] = uv[:, 1:2] * T[2] - T[1]
+        depth_row[sel] = T[2]
+    rows /= np.linalg.norm(rows, axis=2, keepdims=True)
+    A = np.zeros((num, 4, 4))  # normal equations A^T A per track
+    np.add.at(A, tracks.track, np.einsum("oki,okj->oij", rows, rows))
+    _, vecs = np.linalg.eigh(A)
+    X = vecs[:, :, 0]
+    w = np.where(np.abs(X[:, 3]) > 1e-12, X[:, 3], np.nan)
+    X = X / w[:, None]
+    behind = np.zeros(num, dtype=bool)
+    np.logical_or.at(
+        behind, tracks.track, np.einsum("oi,oi->o", depth_row, X[tracks.track]) <= 0
+    )
+    X[behind] = np.nan
+    counts = np.bincount(tracks.track, minlength=num)
+    return X[:, :3], counts
+
+
+def bundle_adjust_inplace(rec: pycolmap.Reconstruction, loss_scale_px: float) -> None:
+    """COLMAP's bundle adjustment (intrinsics fixed, Cauchy loss), in place."""
+    ba = pycolmap.BundleAdjustmentOptions(
+        refine_focal_length=False,
+        refine_principal_point=False,
+        refine_extra_params=False,
+        print_summary=False,
+    )
+    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    ba.ceres.loss_function_scale = loss_scale_px
+    pycolmap.bundle_adjustment(rec, ba)
+
+
+def subset(tracks: KeypointTracks, keep: np.ndarray) -> KeypointTracks:
+    return KeypointTracks(
+        track=tracks.track[keep],
+        image_id=tracks.image_id[keep],
+        point2D_idx=tracks.point2D_idx[keep],
+        xy_img=tracks.xy_img[keep],
+        keys=tracks.keys,
+    )
+
+
+def relabelled(
+    tracks: KeypointTracks, image_id: int, partner: IndexArray
+) -> KeypointTracks:
+    """``tracks`` with image ``image_id``'s keypoints moved to their left/right
+    counterparts' tracks (those without one are dropped)."""
+    track = tracks.track.copy()
+    mine = tracks.image_id == image_id
+    track[mine] = partner[track[mine]]
+    keep = track >= 0
+    order = np.argsort(track[keep], kind="stable")
+    return KeypointTracks(
+        track=track[keep][order],
+        image_id=tracks.image_id[keep][order],
+        point2D_idx=tracks.point2D_idx[keep][order],
+        xy_img=tracks.xy_img[keep][order],
+        keys=tracks.keys,
+    )
+
+
+def keypoint_observations(tracks: KeypointTracks) -> set[tuple[int, int]]:
+    return set(zip(tracks.image_id.tolist(), tracks.point2D_idx.tolist(), strict=True))
+
+
+def delete_points_observing(
+    rec: pycolmap.Reconstruction, observations: set[tuple[int, int]]
+) -> None:
+    """Delete every 3D point with an observation in ``observations``."""
+    stale = [
+        point_id
+        for point_id, point in rec.points3D.items()  # loop over the model's points
+        if any(
+            (e.image_id, e.point2D_idx) in observations for e in point.track.elements
+        )
+    ]
+    for point_id in stale:  # deleting while iterating over points3D crashes pycolmap
+        rec.delete_point3D(point_id)
+
+
+def add_keypoint_points(
+    rec: pycolmap.Reconstruction, tracks: KeypointTracks, min_track_length: int
+) -> tuple[np.ndarray, IndexArray]:
+    """Triangulate the tracks with the model's poses and add those seen often
+    enough; returns (added per track, views per track)."""
+    X, counts = triangulate_tracks(rec, tracks)
+    good = (counts >= min_track_length) & np.isfinite(X).all(axis=1)
+    starts = np.searchsorted(tracks.track, np.arange(tracks.num_tracks))
+    ends = np.r_[starts[1:], len(tracks.track)]
+    for t in np.flatnonzero(good):  # loop over tracks: pycolmap's API adds one point
+        track = pycolmap.Track()
+        for o in range(starts[t], ends[t]):
+            track.add_element(int(tracks.image_id[o]), int(tracks.point2D_idx[o]))
+        rec.add_point3D(X[t], track)
+    return good, counts
