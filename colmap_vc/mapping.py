@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from . import database, outputs
+from . import canonical, database, outputs
 from .estimators.body import anny_keypoint_mirror
 from .evaluation import relative_pose, rotation_angle_deg
 from .keypoint_ba import KeypointBaOptions, keypoint_bundle_adjustment
@@ -519,9 +519,20 @@ def run(
     )
     # pycolmap's mappers open their database read-write and migrate its schema:
     # they get a copy, the user's database is only read (docs/database.md).
+    # Same input, same output: the copy is numbered by image name (the mappers
+    # break ties by ids, which follow the order extraction wrote the images).
     with tempfile.TemporaryDirectory(prefix=".work-", dir=output_dir) as work:
-        copy = database.snapshot(database_path, Path(work) / "database.db")
-        rec, summary = _map_copy(copy, image_dir, output_dir, options, priors_path)
+        copy = database.snapshot(database_path, Path(work) / "copy.db")
+        ordered = Path(work) / "database.db"
+        ids = canonical.canonical_copy(copy, ordered)
+        rec, summary = _map_copy(
+            ordered if ids else copy, image_dir, output_dir, options, priors_path
+        )
+    if ids is not None:  # the models get the user's ids back
+        for folder in sorted(output_dir.iterdir()):
+            if (folder / "images.bin").is_file():
+                canonical.relabel(pycolmap.Reconstruction(folder), *ids).write(folder)
+        rec = canonical.relabel(rec, *ids)
     logger.info(
         "mapping: %d model(s); the largest registers %d/%d images (%.1f s)",
         summary.num_models,
