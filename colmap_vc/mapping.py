@@ -337,13 +337,7 @@ def two_view_initialised(
 
 
 def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> float:
-    """How far a model's relative rotations are from the meshes' (deg): per image the
-    median over its pairs, then the median over the images.
-
-    One image whose prior is turned front to back spoils all of its pairs, half the
-    pairs of four images; the median of the per-image medians still sees the other
-    images agree (from 4 images on), so one bad prior does not reject a model.
-    """
+    """Median rotation difference (deg) of a model's and the meshes' relative poses."""
     names = {im.name for im in rec.images.values() if im.has_pose}
     mesh = mesh_alignment_poses(priors, image_names=names)
     model = {
@@ -352,22 +346,15 @@ def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> fl
         if im.has_pose
     }
     common = sorted(set(mesh) & set(model))
-    if len(common) < 2:
-        return 0.0
-    per_image = [
-        np.median(
-            [
-                rotation_angle_deg(
-                    relative_pose(model[a], model[b])[:, :3]
-                    @ relative_pose(mesh[a], mesh[b])[:, :3].T
-                )
-                for b in common
-                if b != a
-            ]
+    diffs = [
+        rotation_angle_deg(
+            relative_pose(model[a], model[b])[:, :3]
+            @ relative_pose(mesh[a], mesh[b])[:, :3].T
         )
-        for a in common
+        for i, a in enumerate(common)
+        for b in common[i + 1 :]
     ]
-    return float(np.median(per_image))
+    return float(np.median(diffs)) if diffs else 0.0
 
 
 def _keypoint_mirror(

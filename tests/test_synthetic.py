@@ -479,3 +479,51 @@ def test_cli_flags_reach_the_generator(tmp_path):
         assert [g for g, w in zip(got, want, strict=True) if w >= 0] == [
             w for w in want if w >= 0
         ]
+
+
+def test_a_turned_prior_faces_away_and_is_read_off_its_own_mesh(dome_scene):
+    """The front/back confusion of a pose estimator (noise ``turn_prob``): the mesh
+    turns 180 deg about the body's vertical axis through the pelvis, its facing
+    (left shoulder - right shoulder) x up reverses, and the dense map names the
+    turned mesh's points under each pixel."""
+    from colmap_vc.synthetic import noise
+    from colmap_vc.synthetic.bodies import joints, load_bodies, pose_body
+
+    bodies = load_bodies()
+    body = pose_body(bodies, 0, 0)
+    # Body frame (left -X, forward +Y, up +Z) -> camera (x right, y down, z ahead):
+    # the person stands 4 m ahead, facing the camera.
+    R = np.array([[-1.0, 0, 0], [0, 0, -1.0], [0, -1.0, 0]])
+    view = noise.PersonView(
+        person_id=0,
+        phenotype=0,
+        pose=0,
+        body_vertices=body,
+        cam_from_body=np.c_[R, [0.0, 0.0, 4.0]],
+        xy_img=np.zeros((0, 2)),
+        face_idx=np.zeros(0, np.int64),
+        bary=np.zeros((0, 3)),
+        mask=np.zeros((480, 640), bool),
+    )
+    verts = body @ R.T + [0.0, 0.0, 4.0]
+    turned = noise._turned(bodies, view, verts)
+    names = bodies.joint_names
+    up = R @ [0.0, 0.0, 1.0]
+
+    def facing(v):
+        j = joints(bodies, v)
+        return np.cross(
+            j[names.index("left_shoulder")] - j[names.index("right_shoulder")], up
+        )
+
+    assert facing(verts) @ facing(turned) < 0  # now faces away
+    assert np.allclose(joints(bodies, turned)[0], joints(bodies, verts)[0])
+    assert np.allclose(noise._turned(bodies, view, turned), verts)
+    camera = pycolmap.Camera(
+        model="PINHOLE", width=640, height=480, params=[500.0, 500.0, 320.0, 240.0]
+    )
+    xy = np.asarray(camera.img_from_cam(turned[::20]))
+    smap = noise._map_of_mesh(turned, bodies.faces, camera, xy)
+    assert len(smap.xy_img) > 0.8 * len(xy)
+    points = np.einsum("nk,nkd->nd", smap.bary, turned[bodies.faces[smap.face_idx]])
+    assert np.allclose(camera.img_from_cam(points), smap.xy_img, atol=1e-3)

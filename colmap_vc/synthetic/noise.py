@@ -68,6 +68,12 @@ class NoiseModel:
     """2D keypoint noise, pixels."""
     keypoint_swap_prob: float
     """Probability of a left/right swap of the 2D keypoints of a person."""
+    turn_prob: float = 0.0
+    """Probability that the whole prior is turned front to back: the estimator took
+    a person seen from the back for one facing the camera, so the mesh is turned
+    180 deg about the body's vertical axis, the dense map is read off that mesh and
+    every left keypoint is labelled right. pose2sim_single: 2 of 20 person views
+    (cam02 at t050 and t070, docs/real-data.md)."""
     mask_jitter_px: int
     """Silhouette: erosion or dilation radius, pixels."""
     confidence: tuple[float, float]
@@ -102,6 +108,7 @@ NOISE_LEVELS: dict[NoiseLevel, NoiseModel] = {
         drop_fraction=0.1,
         keypoint_sigma_px=3.0,
         keypoint_swap_prob=0.05,
+        turn_prob=0.1,
         mask_jitter_px=1,
         confidence=(0.7, 0.95),
     ),
@@ -117,6 +124,7 @@ NOISE_LEVELS: dict[NoiseLevel, NoiseModel] = {
         drop_fraction=0.25,
         keypoint_sigma_px=6.0,
         keypoint_swap_prob=0.15,
+        turn_prob=0.2,
         mask_jitter_px=3,
         confidence=(0.4, 0.8),
     ),
@@ -302,6 +310,19 @@ def _predict_mask(
     return op(view.mask.astype(np.uint8), kernel).astype(bool)
 
 
+def _left_right(names: tuple[str, ...]) -> IndexArray:
+    """Joint i of a person labelled left for right is joint ``[i]``."""
+    return np.array(
+        [
+            names.index(
+                n.replace("left", "#").replace("right", "left").replace("#", "right")
+            )
+            for n in names
+        ],
+        dtype=np.int64,
+    )
+
+
 def _keypoints(
     bodies: BodyModel,
     view: PersonView,
@@ -322,20 +343,7 @@ def _keypoints(
     )
     pred_cam = joints(bodies, pred_vertices)
     if rng.random() < model.keypoint_swap_prob:
-        names = list(bodies.joint_names)
-        swap = np.array(
-            [
-                names.index(
-                    n.replace("left", "#")
-                    .replace("right", "left")
-                    .replace("#", "right")
-                )
-                if ("left" in n or "right" in n)
-                else i
-                for i, n in enumerate(names)
-            ]
-        )
-        xy = xy[swap]
+        xy = xy[_left_right(bodies.joint_names)]
     valid = (
         (true_cam[:, 2] > 0)
         & (xy[:, 0] >= 0)
@@ -344,6 +352,27 @@ def _keypoints(
         & (xy[:, 1] < camera.height)
     )
     return xy, pred_cam, valid
+
+
+def _turned(bodies: BodyModel, view: PersonView, verts: FloatArray) -> FloatArray:
+    """``verts`` turned 180 deg about the body's vertical axis through the pelvis."""
+    from .bodies import joints
+
+    up = view.cam_from_body[:, :3] @ np.array([0.0, 0.0, 1.0])  # Anny: +Z is up
+    turn = 2.0 * np.outer(up, up) - np.eye(3)  # rotation by pi about `up`
+    pelvis = joints(bodies, verts)[0]
+    return (verts - pelvis) @ turn.T + pelvis
+
+
+def _map_of_mesh(
+    verts: FloatArray, faces: IndexArray, camera: pycolmap.Camera, xy: FloatArray
+) -> SurfaceMap:
+    """The dense map a network renders from its own mesh at pixels ``xy``."""
+    scene = raycast.build_scene([(verts, faces)])
+    dirs = raycast.rays_cam(camera, xy)
+    _, face, _, bary = raycast.first_hits(scene, np.zeros_like(dirs), dirs)
+    hit = face >= 0
+    return SurfaceMap(xy_img=xy[hit], face_idx=face[hit], bary=bary[hit])
 
 
 def predict_person(
@@ -356,14 +385,22 @@ def predict_person(
     """The predicted prior of one person in one image at a noise level."""
     model = level if isinstance(level, NoiseModel) else NOISE_LEVELS[NoiseLevel(level)]
     verts = _predict_mesh(bodies, view, camera, model, rng)
+    turned = model.turn_prob > 0 and rng.random() < model.turn_prob
+    if turned:
+        verts = _turned(bodies, view, verts)
     kp_xy, kp_cam, kp_valid = _keypoints(bodies, view, camera, verts, model, rng)
+    surface_map = _predict_surface_map(bodies, view, camera, model, rng)
+    if turned:
+        swap = _left_right(bodies.joint_names)
+        kp_xy, kp_valid = kp_xy[swap], kp_valid[swap]
+        surface_map = _map_of_mesh(verts, bodies.faces, camera, surface_map.xy_img)
     return PersonPrior(
         vertices_cam=verts,
         faces=bodies.faces,
         template="anny",
         person_id=view.person_id,
         confidence=float(rng.uniform(*model.confidence)),
-        surface_map=_predict_surface_map(bodies, view, camera, model, rng),
+        surface_map=surface_map,
         keypoints_xy=kp_xy,
         keypoints_cam=kp_cam,
         keypoints_valid=kp_valid,
