@@ -1,0 +1,187 @@
+"""Mapping started from the people's meshes: two views, or all views at once.
+
+Used by :mod:`colmap_vc.mapping` where COLMAP's incremental start from two-view
+geometry is fragile: one person's two-view geometry can be mirrored, and two images
+give the incremental mapper nothing to check against.
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from . import database
+from .evaluation import relative_pose, rotation_angle_deg
+from .keypoint_tracks import bundle_adjust_inplace
+from .mapping_options import Mapper, MappingOptions, incremental_options
+from .meshalign import mesh_alignment_poses
+from .structs import ScenePriors
+
+logger = logging.getLogger(__name__)
+
+MIN_MESH_INIT_POINTS = 20  # fewer triangulated points: too few for a stable BA
+
+
+def mesh_initialised(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    priors: ScenePriors,
+    options: MappingOptions,
+    num_rounds: int = 3,
+) -> pycolmap.Reconstruction | None:
+    """Cameras from mesh alignment, then COLMAP triangulation + BA, a few rounds.
+
+    Robust where two-view geometry from one person is not: mesh alignment is off by
+    10-20 degrees but never flipped, and bundle adjustment over all views then pulls
+    the cameras to what the VC tracks say.
+    """
+    views = database.read_views(database_path)
+    poses = mesh_alignment_poses(priors, image_names=set(views.image_names))
+    if len(poses) < 2:
+        return None
+    rec = pycolmap.Reconstruction()
+    for camera in views.cameras.values():
+        rec.add_camera_with_trivial_rig(camera)
+    for image_id, name, camera_id in zip(
+        views.image_ids, views.image_names, views.camera_ids, strict=True
+    ):
+        if name in poses:
+            T = poses[name]
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(
+                    name=name, camera_id=int(camera_id), image_id=int(image_id)
+                ),
+                pycolmap.Rigid3d(pycolmap.Rotation3d(T[:, :3]), T[:, 3]),
+            )
+    pipeline = incremental_options(options)
+    # The initial poses are coarse: triangulate generously, let BA tighten.
+    pipeline.triangulation.complete_max_reproj_error = (
+        4 * options.filter_max_reproj_error_px
+    )
+    pipeline.triangulation.merge_max_reproj_error = (
+        4 * options.filter_max_reproj_error_px
+    )
+    pipeline.triangulation.create_max_angle_error = 10.0
+    output_dir.mkdir(parents=True, exist_ok=True)
+    for _ in range(num_rounds):
+        rec = pycolmap.triangulate_points(
+            rec,
+            database_path,
+            image_dir,
+            output_dir,
+            clear_points=True,
+            options=pipeline,
+        )
+        if rec.num_points3D() < MIN_MESH_INIT_POINTS:
+            break
+        bundle_adjust_inplace(rec, options.filter_max_reproj_error_px / 2)
+    if rec.num_points3D() < MIN_MESH_INIT_POINTS:
+        if not options.keypoint_ba:
+            return None
+        # Too few verified matches to triangulate (one person, failed RANSAC): the
+        # keypoint BA needs none, its tracks come from identities.
+        logger.info(
+            "mesh-initialised mapping: %d points triangulated; keeping the "
+            "mesh-alignment cameras for the keypoint bundle adjustment",
+            rec.num_points3D(),
+        )
+        for point_id in list(rec.point3D_ids()):
+            rec.delete_point3D(point_id)
+        for image in rec.images.values():  # back to the meshes' cameras
+            T = poses[image.name]
+            rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
+                pycolmap.Rotation3d(T[:, :3]), T[:, 3]
+            )
+    rec.write(output_dir)
+    return rec
+
+
+def two_view_initialised(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    options: MappingOptions,
+    priors: ScenePriors | None = None,
+) -> pycolmap.Reconstruction | None:
+    """A two-image model from the pair's verified two-view geometry, triangulated.
+
+    COLMAP's incremental mapper discards a model made of its initial pair only, so a
+    two-image scene (the paper's two-frame task) is built here: camera 1 at the
+    origin, camera 2 at the verified relative pose (unit baseline), the VC and
+    classic inlier tracks triangulated. No Ceres BA (it cannot fix a two-camera
+    gauge); the generalized BA refines it with an explicit gauge.
+    """
+    views = database.read_views(database_path)
+    geometries = database.read_two_view_geometries(database_path, include_vc=True)
+    posed = {p: row for p, row in geometries.items() if row.cam2_from_cam1 is not None}
+    if not posed:
+        return None
+    (id1, id2), row = max(posed.items(), key=lambda kv: len(kv[1].inlier_matches))
+    rel = row.cam2_from_cam1
+    if priors is not None and options.mapper is Mapper.AUTO:
+        names = {
+            int(i): n for i, n in zip(views.image_ids, views.image_names, strict=True)
+        }
+        mesh = mesh_alignment_poses(priors, image_names={names[id1], names[id2]})
+        if len(mesh) == 2:
+            mesh_rel = relative_pose(mesh[names[id1]], mesh[names[id2]])
+            deviation = rotation_angle_deg(rel[:, :3] @ mesh_rel[:, :3].T)
+            if deviation > options.max_prior_deviation_deg:
+                logger.info(
+                    "the two-view geometry contradicts the mesh prior (%.0f deg): "
+                    "starting from the meshes' relative pose",
+                    deviation,
+                )
+                t = mesh_rel[:, 3] / max(np.linalg.norm(mesh_rel[:, 3]), 1e-12)
+                rel = np.c_[mesh_rel[:, :3], t]
+    kp1 = database.read_keypoints(database_path, int(id1), include_vc=True)
+    kp2 = database.read_keypoints(database_path, int(id2), include_vc=True)
+    rec = pycolmap.Reconstruction()
+    for camera in views.cameras.values():
+        rec.add_camera_with_trivial_rig(camera)
+    for image_id, pose, kp in (
+        (id1, np.c_[np.eye(3), np.zeros(3)], kp1),
+        (id2, rel, kp2),
+    ):
+        i = int(np.flatnonzero(views.image_ids == image_id)[0])
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(
+                name=views.image_names[i],
+                keypoints=kp,
+                camera_id=int(views.camera_ids[i]),
+                image_id=int(image_id),
+            ),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(pose[:, :3]), pose[:, 3]),
+        )
+    # Midpoint triangulation of the inlier matches (vectorized), cheirality-checked.
+    m = row.inlier_matches
+    cam1 = views.cameras[int(views.camera_ids[views.image_ids == id1][0])]
+    cam2 = views.cameras[int(views.camera_ids[views.image_ids == id2][0])]
+    d1 = np.c_[cam1.cam_from_img(kp1[m[:, 0]]), np.ones(len(m))]
+    d2 = (
+        np.c_[cam2.cam_from_img(kp2[m[:, 1]]), np.ones(len(m))] @ rel[:, :3]
+    )  # in cam 1
+    c2 = -rel[:, :3].T @ rel[:, 3]
+    # Closest points of the rays o1 + s d1 and c2 + u d2.
+    a, b, c = (d1 * d1).sum(1), (d1 * d2).sum(1), (d2 * d2).sum(1)
+    w = -c2
+    d, e = (d1 * w).sum(1), (d2 * w).sum(1)
+    den = np.maximum(a * c - b * b, 1e-12)
+    s_ = (b * e - c * d) / den
+    u_ = (a * e - b * d) / den
+    xyz = 0.5 * (s_[:, None] * d1 + (c2 + u_[:, None] * d2))
+    ok = (s_ > 0) & (u_ > 0)
+    for (i1, i2), x in zip(m[ok], xyz[ok], strict=True):  # one pycolmap call per point
+        track = pycolmap.Track()
+        track.add_element(int(id1), int(i1))
+        track.add_element(int(id2), int(i2))
+        rec.add_point3D(x, track)
+    if rec.num_points3D() == 0:
+        return None
+    output_dir.mkdir(parents=True, exist_ok=True)
+    rec.write(output_dir)
+    return rec

@@ -1,0 +1,154 @@
+"""Options of `colmap-vc map` and their translation into pycolmap's pipelines.
+
+The defaults suit virtual correspondences: VC pairs are wide-baseline by nature and
+their pixels carry a few pixels of prior error, so the mapper's reprojection filters
+are looser than COLMAP's, while the inlier counts stay COLMAP's.
+"""
+
+from __future__ import annotations
+
+import enum
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import pycolmap
+
+from .keypoint_ba import KeypointBaOptions
+
+
+class Mapper(enum.StrEnum):
+    """Which pycolmap mapper."""
+
+    AUTO = (
+        "auto"  # incremental, checked against the mesh prior, mesh-initialised if not
+    )
+    INCREMENTAL = "incremental"
+    GLOBAL = "global"
+    MESH = "mesh"  # cameras from mesh alignment, then triangulation + bundle adjustment
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class MappingOptions:
+    """Options of the mapper (the ones that matter for VC pairs)."""
+
+    mapper: Mapper = Mapper.AUTO
+    """auto: pycolmap's incremental mapper, whose result is checked against the coarse
+    camera poses the predicted meshes give (mesh alignment); when it contradicts them
+    (a mirrored two-view start, typical with one person) or registers fewer images
+    than the meshes can place, the mesh-initialised mapper replaces it (if it does
+    better). incremental / global (GLOMAP) / mesh force one mapper."""
+    max_prior_deviation_deg: float = 35.0
+    """auto: largest median rotation difference to the mesh prior that is accepted."""
+    max_image_prior_deviation_deg: float = 90.0
+    """An image whose relative rotations to the other registered images differ from
+    the meshes' by more than this (median over its pairs) is left out: its evidence
+    contradicts its own people. The meshes' relative rotations are off by up to 77
+    deg for correctly posed cameras on pose2sim_multi (10-25 deg median), so only a
+    contradiction beyond any mesh error counts (0: no check)."""
+    refine_intrinsics: bool = False
+    """Refine focal length and distortion (off: the intrinsics are known)."""
+    num_threads: int = -1
+    """Threads (-1: all cores)."""
+    static_cameras: str | None = None
+    """Images from static cameras (the regular expression of `augment
+    --static-cameras`; default: what augment recorded): one pose per physical
+    camera, given to every image of that camera."""
+    seed: int = 0
+    """Seed of COLMAP's randomness (pycolmap.set_random_seed)."""
+    min_num_matches: int = 15
+    """Minimum verified matches for a pair to enter the scene graph."""
+    init_min_num_inliers: int = 50
+    """Minimum inliers of the initial pair (COLMAP: 100)."""
+    init_min_tri_angle_deg: float = 4.0
+    """Minimum triangulation angle of the initial pair, degrees (COLMAP: 16)."""
+    abs_pose_min_num_inliers: int = 30
+    """Minimum 2D-3D inliers to register an image."""
+    abs_pose_max_error_px: float = 12.0
+    """RANSAC threshold of image registration, pixels."""
+    filter_max_reproj_error_px: float = 8.0
+    """Observations reprojecting worse are filtered, pixels (COLMAP: 4)."""
+    multiple_models: bool = True
+    """Allow several models (the largest one is returned)."""
+    min_model_size: int = 2
+    """Smallest model kept, in images (COLMAP: 10, which silently drops a two-view or
+    small extreme-view model)."""
+    bundle_adjustment: bool = True
+    """Run COLMAP's local and global bundle adjustment (off: initialisation only, i.e.
+    registration and triangulation with one global BA iteration, COLMAP's minimum)."""
+    keypoint_ba: bool = True
+    """Finish with the keypoint bundle adjustment (colmap_vc/keypoint_ba.py): the
+    people's keypoints as multi-view tracks by identity, robust loss, a budget of
+    surface-VC points. A database without keypoint VCs is left as mapped."""
+    keypoint_ba_options: KeypointBaOptions = field(default_factory=KeypointBaOptions)
+    """Options of that pass."""
+    show_progress: bool = True
+    """Log each registered image."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class MappingSummary:
+    """What the mapper produced."""
+
+    num_models: int
+    num_images: int
+    registered: list[str]
+    unregistered: dict[str, str]  # image name -> why
+    model_dir: Path | None
+    elapsed_s: float
+
+    @property
+    def num_registered(self) -> int:
+        """Images in the largest model."""
+        return len(self.registered)
+
+
+# COLMAP's own defaults, for the classic baseline.
+COLMAP_DEFAULTS = MappingOptions(
+    mapper=Mapper.INCREMENTAL,
+    min_model_size=10,
+    init_min_num_inliers=100,
+    init_min_tri_angle_deg=16.0,
+    filter_max_reproj_error_px=4.0,
+)
+
+
+def incremental_options(options: MappingOptions) -> pycolmap.IncrementalPipelineOptions:
+    """pycolmap incremental pipeline options from ours."""
+    pipeline = pycolmap.IncrementalPipelineOptions(
+        num_threads=options.num_threads,
+        min_num_matches=options.min_num_matches,
+        multiple_models=options.multiple_models,
+        ba_refine_focal_length=options.refine_intrinsics,
+        ba_refine_principal_point=False,
+        ba_refine_extra_params=options.refine_intrinsics,
+        random_seed=options.seed,
+        min_model_size=options.min_model_size,
+    )
+    m = pipeline.mapper
+    m.init_min_num_inliers = options.init_min_num_inliers
+    m.init_min_tri_angle = options.init_min_tri_angle_deg
+    m.abs_pose_min_num_inliers = options.abs_pose_min_num_inliers
+    m.abs_pose_max_error = options.abs_pose_max_error_px
+    m.filter_max_reproj_error = options.filter_max_reproj_error_px
+    pipeline.triangulation.complete_max_reproj_error = (
+        options.filter_max_reproj_error_px
+    )
+    pipeline.triangulation.merge_max_reproj_error = options.filter_max_reproj_error_px
+    if not options.bundle_adjustment:
+        # Initialisation only: no local BA; COLMAP insists on >= 1 global iteration.
+        pipeline.ba_local_max_num_iterations = 0
+        pipeline.ba_global_max_num_iterations = 1
+        pipeline.ba_local_max_refinements = 1
+        pipeline.ba_global_max_refinements = 1
+    return pipeline
+
+
+def global_options(options: MappingOptions) -> pycolmap.GlobalPipelineOptions:
+    """pycolmap global pipeline options from ours."""
+    pipeline = pycolmap.GlobalPipelineOptions(
+        num_threads=options.num_threads,
+        min_num_matches=options.min_num_matches,
+        multiple_models=options.multiple_models,
+        random_seed=options.seed,
+    )
+    return pipeline

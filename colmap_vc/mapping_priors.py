@@ -1,0 +1,181 @@
+"""The people's meshes as a check on a model, and the priors `map` uses.
+
+A model is compared with the coarse camera poses the meshes give (mesh alignment):
+the whole model (:func:`prior_deviation_deg`, `auto` mapper) and each image
+(:func:`leave_out_prior_outliers_inplace`: a wrong camera is worse than none).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from . import database
+from .estimators.body import anny_keypoint_mirror
+from .evaluation import relative_pose, rotation_angle_deg
+from .keypoint_tracks import person_identities
+from .meshalign import mesh_alignment_poses
+from .priors import read_priors
+from .static_cameras import StaticCameras, merge_priors
+from .structs import ScenePriors
+
+logger = logging.getLogger(__name__)
+
+
+def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> float:
+    """Median rotation difference (deg) of a model's and the meshes' relative poses."""
+    names = {im.name for im in rec.images.values() if im.has_pose}
+    mesh = mesh_alignment_poses(priors, image_names=names)
+    model = {
+        im.name: im.cam_from_world().matrix()
+        for im in rec.images.values()
+        if im.has_pose
+    }
+    common = sorted(set(mesh) & set(model))
+    diffs = [
+        rotation_angle_deg(
+            relative_pose(model[a], model[b])[:, :3]
+            @ relative_pose(mesh[a], mesh[b])[:, :3].T
+        )
+        for i, a in enumerate(common)
+        for b in common[i + 1 :]
+    ]
+    return float(np.median(diffs)) if diffs else 0.0
+
+
+def keypoint_mirror(
+    database_path: Path, priors: ScenePriors | None
+) -> dict[int, int] | None:
+    """Template track id -> its left/right counterpart's, for the camera check."""
+    if priors is None:
+        return None
+    persons = [p for ip in priors.images.values() for p in ip.persons]
+    perm = anny_keypoint_mirror(persons)
+    if perm is None:
+        return None
+    run = database.read_run_info(database_path).get("options", {})
+    offset = int(run.get("matching", {}).get("num_samples", 0))
+    if offset <= 0:
+        return None
+    return {offset + k: offset + int(j) for k, j in enumerate(perm.tolist())}
+
+
+def leave_out_prior_outliers_inplace(
+    rec: pycolmap.Reconstruction,
+    priors: ScenePriors,
+    max_deviation_deg: float,
+    *,
+    exempt: frozenset[str] = frozenset(),
+) -> dict[str, str]:
+    """Deregister images whose pose contradicts the meshes (image name -> why).
+
+    Per registered image: the median over its pairs (with the other registered
+    images the meshes can place) of the rotation difference between the model's
+    and the meshes' relative poses. The worst image above ``max_deviation_deg`` is
+    left out, then the next, while 3 or more remain (with 2 the images cannot tell
+    which of the two is wrong). A wrong camera is worse than none.
+    """
+    if max_deviation_deg <= 0:
+        return {}
+    model = {
+        im.name: (i, im.cam_from_world().matrix())
+        for i, im in rec.images.items()
+        if im.has_pose
+    }
+    mesh = mesh_alignment_poses(priors, image_names=set(model) - exempt)
+    placed = sorted(set(mesh) & set(model))
+    left: dict[str, str] = {}
+    while len(placed) >= 3:
+        medians = {
+            a: float(
+                np.median(
+                    [
+                        rotation_angle_deg(
+                            relative_pose(model[a][1], model[b][1])[:, :3]
+                            @ relative_pose(mesh[a], mesh[b])[:, :3].T
+                        )
+                        for b in placed
+                        if b != a
+                    ]
+                )
+            )
+            for a in placed
+        }
+        logger.debug("deviation from the meshes: %s", medians)
+        worst = max(placed, key=lambda a: (medians[a], a))
+        if medians[worst] <= max_deviation_deg:
+            break
+        left[worst] = (
+            f"left out: its pose contradicts the body meshes (relative rotations "
+            f"{medians[worst]:.0f} deg from theirs, median over {len(placed) - 1} "
+            f"images; more than any mesh error, {max_deviation_deg:g} deg)"
+        )
+        logger.warning("%s %s", worst, left[worst])
+        rec.deregister_frame(rec.image(model[worst][0]).frame_id)
+        placed.remove(worst)
+    return left
+
+
+def load_priors(
+    database_path: Path,
+    priors_path: Path | None,
+    image_names: tuple[str, ...],
+    static: StaticCameras | None = None,
+) -> ScenePriors | None:
+    """The priors given, else those `augment` recorded in the database, else None."""
+    if priors_path is None:
+        recorded = database.read_run_info(database_path).get("priors")
+        if not recorded:
+            return None
+        try:
+            if not Path(recorded).exists():
+                return None
+            priors = read_priors(Path(recorded), known_image_names=image_names)
+        except OSError as error:
+            raise OSError(
+                f"the priors augment used, {recorded} (recorded in the database), "
+                f"cannot be read ({error.strerror or error}): give --priors"
+            ) from error
+    else:
+        priors = read_priors(priors_path, known_image_names=image_names)
+    if static is not None:  # the views augment wrote: one per static camera
+        priors, _ = merge_priors(priors, static)
+    return with_associated_ids(priors, database_path)
+
+
+def with_associated_ids(priors: ScenePriors, database_path: Path) -> ScenePriors:
+    """Anonymous people get the identity `augment`'s association gave them.
+
+    Mesh alignment (the auto mapper's check and the mesh-initialised mapper) pairs
+    people by identity; with anonymous multi-person priors it could pair nobody.
+    People the association left out stay anonymous.
+    """
+    associations = database.read_person_associations(database_path)
+    if not associations:
+        return priors
+    identity = person_identities(associations)
+    views = database.read_views(database_path)
+    id_of = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
+    offset = 1 + max(
+        (
+            p.person_id
+            for ip in priors.images.values()
+            for p in ip.persons
+            if p.person_id is not None
+        ),
+        default=-1,
+    )
+    images = {}
+    for name, ip in priors.images.items():
+        persons = tuple(
+            p
+            if p.person_id is not None or (id_of.get(name), k) not in identity
+            else dataclasses.replace(p, person_id=offset + identity[(id_of[name], k)])
+            for k, p in enumerate(ip.persons)
+        )
+        images[name] = dataclasses.replace(ip, persons=persons)
+    return dataclasses.replace(priors, images=images)
