@@ -301,7 +301,7 @@ def _run_eval(cmd: Eval) -> int:
     if cmd.plot is not None:
         import numpy as np
 
-        from .report import error_curve_figure
+        from .report_figures import error_curve_figure
 
         fig = error_curve_figure(
             {"prediction": np.array([p.error_deg for p in metrics.pairs])}

@@ -14,14 +14,13 @@ extra) is imported lazily, only when a figure is drawn.
 
 from __future__ import annotations
 
-import base64
 import html
 import logging
 import math
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any
+from typing import Any
 
 import cv2
 import numpy as np
@@ -34,24 +33,22 @@ from colmap_vc.evaluation import (
     evaluate_reconstruction,
     relative_pose,
 )
+from colmap_vc.report_draw import (
+    draw_pair,
+    epipolar_errors_px,
+    fundamental_errors_px,
+)
+from colmap_vc.report_figures import (
+    PlotCameras,
+    error_curve_uri,
+    jpeg_uri,
+    model_points,
+    pose_figures,
+    similarity,
+)
 from colmap_vc.structs import FloatArray, HitKind, PairVcMatches, VcKeypoints
-from colmap_vc.verification import epipolar_line_distances, skew
-
-if TYPE_CHECKING:
-    from matplotlib.figure import Figure
 
 logger = logging.getLogger(__name__)
-
-CLASSIC_BGR = (255, 140, 0)  # azure: classic inlier matches (VCs use green..red)
-UNKNOWN_BGR = (170, 170, 170)  # grey: VCs of a pair without any geometry
-NUM_COLOR_LEVELS = 16  # error colours are quantised so dots are drawn per colour
-PANEL_GAP_PX = 8  # white gap between the two images of a pair panel
-MAX_PLOT_POINTS = 20000  # sparse points drawn in the pose plots (strided subsample)
-VIEW_ANGLES_DEG = {
-    "oblique": (25.0, -60.0),
-    "front": (5.0, -90.0),
-    "top": (85.0, -90.0),
-}
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -86,430 +83,6 @@ class ReportInputs:
 
 # ---------------------------------------------------------------- geometry
 
-
-def epipolar_errors_px(
-    xy1: FloatArray,
-    xy2: FloatArray,
-    camera1: pycolmap.Camera,
-    camera2: pycolmap.Camera,
-    cam2_from_cam1: FloatArray,
-) -> FloatArray:
-    """Symmetric epipolar distance of matches under a relative pose, in pixels.
-
-    Args:
-        xy1, xy2: (N, 2) float64 pixels, COLMAP convention.
-        camera1, camera2: the cameras (distortion is undone by ``cam_from_img``).
-        cam2_from_cam1: (3, 4) [R | t]; the scale of t does not matter.
-
-    Returns:
-        (N,) float64: mean of the distances to the epipolar line in each image,
-        converted from normalized units by each camera's mean focal length; NaN
-        where undefined (pure rotation, failed undistortion).
-    """
-    xy1, xy2 = np.asarray(xy1, np.float64), np.asarray(xy2, np.float64)
-    if xy1.shape != xy2.shape or xy1.ndim != 2 or xy1.shape[1] != 2:
-        raise ValueError(f"{xy1.shape=} and {xy2.shape=} must both be (N, 2)")
-    if len(xy1) == 0:
-        return np.zeros(0, np.float64)
-    ones = np.ones((len(xy1), 1))
-    # (N, 2) overload of cam_from_img: normalized coordinates, distortion undone.
-    p1 = np.hstack([np.asarray(camera1.cam_from_img(xy1), np.float64), ones])
-    p2 = np.hstack([np.asarray(camera2.cam_from_img(xy2), np.float64), ones])
-    E = skew(cam2_from_cam1[:, 3]) @ cam2_from_cam1[:, :3]
-    d = epipolar_line_distances(p1, p2, E)
-    focal = np.array([camera1.mean_focal_length(), camera2.mean_focal_length()])
-    errors = np.mean(d * focal, axis=1)
-    return np.where(np.isfinite(errors), errors, np.nan)
-
-
-def fundamental_errors_px(
-    xy1: FloatArray, xy2: FloatArray, F: FloatArray
-) -> FloatArray:
-    """(N,) symmetric epipolar distance in pixels under a fundamental matrix.
-
-    ``F`` maps COLMAP-convention pixels, as COLMAP estimates it from stored keypoints.
-    """
-    ones = np.ones((len(xy1), 1))
-    d = epipolar_line_distances(np.hstack([xy1, ones]), np.hstack([xy2, ones]), F)
-    errors = np.mean(d, axis=1)
-    return np.where(np.isfinite(errors), errors, np.nan)
-
-
-def error_colors_bgr(errors_px: FloatArray, max_error_px: float) -> np.ndarray:
-    """(N, 3) uint8 BGR: 0 px pure green, max/2 yellow, >= max pure red, NaN grey."""
-    t = np.clip(np.asarray(errors_px, np.float64) / max_error_px, 0.0, 1.0)
-    bgr = np.column_stack(
-        [np.zeros_like(t), 255 * np.clip(2 * (1 - t), 0, 1), 255 * np.clip(2 * t, 0, 1)]
-    )
-    bgr[np.isnan(t)] = UNKNOWN_BGR
-    return np.round(bgr).astype(np.uint8)
-
-
-def _similarity(
-    src: FloatArray, dst: FloatArray
-) -> tuple[float, FloatArray, FloatArray]:
-    """Umeyama: (s, R, t) minimising |dst - (s R src + t)|, for (N, 3) points."""
-    mu_s, mu_d = src.mean(0), dst.mean(0)
-    a, b = src - mu_s, dst - mu_d
-    U, S, Vt = np.linalg.svd(b.T @ a / len(src))
-    D = np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))])  # no reflections
-    R = U @ D @ Vt
-    s = float(np.trace(np.diag(S) @ D) / max(np.mean(np.sum(a**2, 1)), 1e-300))
-    return s, R, mu_d - s * R @ mu_s
-
-
-# ---------------------------------------------------------------- drawing
-
-
-def _polylines(
-    image: np.ndarray, segments: np.ndarray, colors: np.ndarray, thickness: int
-) -> None:
-    """Draw (N, 2, 2) pixel segments (OpenCV convention) in place, one call per colour.
-
-    A segment with equal ends is a disk of diameter ``thickness``. Colours are drawn
-    in the order they first appear, so callers sort segments to put some on top.
-    """
-    if len(segments) == 0:
-        return
-    fixed = np.round(segments * 16).astype(np.int32)  # 4 fractional bits (shift=4)
-    keys = colors.astype(np.int64) @ np.array([1, 256, 65536])
-    _, first, inverse = np.unique(keys, return_index=True, return_inverse=True)
-    for group in np.argsort(first):  # loop over <= NUM_COLOR_LEVELS + 2 colours
-        color = tuple(int(c) for c in colors[first[group]])
-        cv2.polylines(
-            image,
-            list(fixed[inverse == group]),
-            False,
-            color,
-            thickness,
-            cv2.LINE_AA,
-            4,
-        )
-
-
-def _fit_height(image: np.ndarray, height: int) -> tuple[np.ndarray, float]:
-    scale = height / image.shape[0]
-    width = max(1, round(image.shape[1] * scale))
-    return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA), scale
-
-
-def draw_pair(
-    image1: np.ndarray,
-    image2: np.ndarray,
-    *,
-    vc_xy1: FloatArray,
-    vc_xy2: FloatArray,
-    vc_errors_px: FloatArray,
-    vc_is_inlier: np.ndarray | None = None,
-    classic_xy1: FloatArray | None = None,
-    classic_xy2: FloatArray | None = None,
-    height: int = 360,
-    max_error_px: float = 8.0,
-    max_vc_lines: int = 40,
-    max_vc_dots: int = 600,
-) -> np.ndarray:
-    """Two BGR images side by side with their VCs and classic inlier matches.
-
-    Each image is resized to ``height``; image 2 starts ``PANEL_GAP_PX`` right of
-    image 1. Up to ``max_vc_dots`` VCs (an even spread) are dots in both images,
-    coloured by epipolar error (see
-    :func:`error_colors_bgr`; inliers larger and outlined, the largest errors on
-    top); an evenly spread subset of ``max_vc_lines`` VCs is also joined by a line.
-    Classic inlier matches are thin azure lines. Points are (N, 2) float64 pixels,
-    COLMAP convention.
-
-    Returns:
-        (height, W, 3) uint8 BGR panel.
-    """
-    im1, s1 = _fit_height(image1, height)
-    im2, s2 = _fit_height(image2, height)
-    offset = im1.shape[1] + PANEL_GAP_PX
-    panel = np.full((height, offset + im2.shape[1], 3), 255, np.uint8)
-    panel[:, : im1.shape[1]] = im1
-    panel[:, offset:] = im2
-
-    def to_panel(xy1: FloatArray, xy2: FloatArray) -> tuple[FloatArray, FloatArray]:
-        # COLMAP pixel edges scale exactly; OpenCV puts the first pixel centre at 0.
-        return xy1 * s1 - 0.5, xy2 * s2 - 0.5 + [offset, 0.0]
-
-    if classic_xy1 is not None and classic_xy2 is not None and len(classic_xy1):
-        c1, c2 = to_panel(classic_xy1, classic_xy2)
-        color = np.tile(CLASSIC_BGR, (len(c1), 1))
-        _polylines(panel, np.stack([c1, c2], 1), color, 1)
-        _polylines(panel, np.stack([np.r_[c1, c2]] * 2, 1), np.r_[color, color], 4)
-
-    if len(vc_xy1):
-        inlier = (
-            np.ones(len(vc_xy1), bool)
-            if vc_is_inlier is None
-            else np.asarray(vc_is_inlier, bool)
-        )
-        errors = np.asarray(vc_errors_px, np.float64)
-        # Quantise so that dots are drawn in a few colour batches; NaN sorts first.
-        level = np.round(np.clip(errors / max_error_px, 0, 1) * NUM_COLOR_LEVELS)
-        colors = error_colors_bgr(level / NUM_COLOR_LEVELS * max_error_px, max_error_px)
-        order = np.argsort(np.nan_to_num(level, nan=-1.0), kind="stable")
-        if len(order) > max_vc_dots:  # an even spread keeps the error distribution
-            spread = np.unique(
-                np.linspace(0, len(order) - 1, max_vc_dots).astype(np.int64)
-            )
-            order = spread[
-                np.argsort(np.nan_to_num(level[spread], nan=-1.0), kind="stable")
-            ]
-        v1, v2 = to_panel(vc_xy1, vc_xy2)
-        if max_vc_lines > 0:
-            keep = np.unique(
-                np.linspace(0, len(v1) - 1, min(max_vc_lines, len(v1))).astype(np.int64)
-            )
-            lines = keep[
-                np.argsort(np.nan_to_num(level[keep], nan=-1.0), kind="stable")
-            ]
-            _polylines(panel, np.stack([v1[lines], v2[lines]], 1), colors[lines], 1)
-        for is_in, size in ((False, 3), (True, 4)):
-            idx = order[inlier[order] == is_in]
-            dots = np.r_[v1[idx], v2[idx]]
-            dot_colors = np.r_[colors[idx], colors[idx]]
-            if is_in:  # dark outline first, so light colours stand out on skin
-                _polylines(
-                    panel, np.stack([dots] * 2, 1), np.zeros_like(dot_colors), size + 2
-                )
-            _polylines(panel, np.stack([dots] * 2, 1), dot_colors, size)
-    return panel
-
-
-def _jpeg_uri(image: np.ndarray, quality: int = 92) -> str:
-    """A BGR image as a JPEG data URI.
-
-    JPEG, never PNG: once ``import pycolmap`` has loaded the system libz (its
-    extension exports zlib-ng symbols that libz's own calls then bind to), any
-    later deflate (PNG in OpenCV or PIL, Python's zlib) aborts the process with
-    "free(): invalid pointer". JPEG needs no zlib, so the report is safe in any
-    import order.
-    """
-    # 4:4:4 chroma: the default 4:2:0 would smear the colour of few-pixel dots.
-    params = [cv2.IMWRITE_JPEG_QUALITY, quality]
-    params += [cv2.IMWRITE_JPEG_SAMPLING_FACTOR, cv2.IMWRITE_JPEG_SAMPLING_FACTOR_444]
-    ok, data = cv2.imencode(".jpg", image, params)
-    if not ok:
-        raise RuntimeError(f"cannot encode a {image.shape} image as JPEG")
-    return "data:image/jpeg;base64," + base64.b64encode(data.tobytes()).decode()
-
-
-def _figure_uri(fig: Figure) -> str:
-    """A figure rasterised by Agg (no PIL, no zlib: see _jpeg_uri) as a JPEG URI."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-
-    canvas = FigureCanvasAgg(fig)
-    canvas.draw()
-    rgba = np.asarray(canvas.buffer_rgba())
-    return _jpeg_uri(cv2.cvtColor(rgba, cv2.COLOR_RGBA2BGR), quality=95)
-
-
-def _new_figure(width_in: float, height_in: float) -> Figure:
-    try:
-        from matplotlib.figure import Figure
-    except ImportError as error:  # the viz extra
-        raise ImportError(
-            "the report's plots need matplotlib: pip install 'colmap-vc[viz]'"
-        ) from error
-    # A bare Figure (no pyplot): no global state, no GUI backend.
-    return Figure(figsize=(width_in, height_in), dpi=100, layout="constrained")
-
-
-# ---------------------------------------------------------------- models
-
-
-@dataclass(frozen=True, kw_only=True, slots=True)
-class _Cameras:
-    """Registered cameras of one model in some world frame."""
-
-    names: tuple[str, ...]
-    centers: FloatArray  # (N, 3)
-    directions: FloatArray  # (N, 3) unit viewing directions
-    image_up: FloatArray  # (N, 3) unit world direction of each image's "up"
-
-    @classmethod
-    def of(cls, rec: pycolmap.Reconstruction) -> _Cameras:
-        images = sorted(
-            (im for im in rec.images.values() if im.has_pose), key=lambda im: im.name
-        )
-        rotations = np.array([im.cam_from_world().rotation.matrix() for im in images])
-        return cls(
-            names=tuple(im.name for im in images),
-            centers=np.array([im.projection_center() for im in images]).reshape(-1, 3),
-            directions=rotations[:, 2, :].reshape(-1, 3),  # camera +z in world
-            image_up=-rotations[:, 1, :].reshape(-1, 3),  # camera -y in world
-        )
-
-    def transformed(self, s: float, R: FloatArray, t: FloatArray) -> _Cameras:
-        return _Cameras(
-            names=self.names,
-            centers=s * self.centers @ R.T + t,
-            directions=self.directions @ R.T,
-            image_up=self.image_up @ R.T,
-        )
-
-
-def _points(rec: pycolmap.Reconstruction) -> FloatArray:
-    """(P, 3) sparse points, strided to at most MAX_PLOT_POINTS."""
-    ids = sorted(rec.point3D_ids())
-    ids = ids[:: max(1, math.ceil(len(ids) / MAX_PLOT_POINTS))]
-    # pycolmap has no array accessor for points3D: one binding call per kept point.
-    return np.array([rec.point3D(i).xyz for i in ids], np.float64).reshape(-1, 3)
-
-
-def _plot_basis(cams: _Cameras) -> FloatArray:
-    """(3, 3) rows e1, e2, up: up from the images' mean up vector, e1/e2 by PCA."""
-    up = cams.image_up.mean(0)
-    centered = cams.centers - cams.centers.mean(0)
-    if np.linalg.norm(up) < 0.3 and len(cams.centers) >= 3:  # no consensus: PCA
-        up = np.linalg.svd(centered)[2][2]
-    up = up / np.linalg.norm(up) if np.linalg.norm(up) > 0 else np.array([0.0, 0, 1])
-    flat = centered - np.outer(centered @ up, up)
-    e1 = np.linalg.svd(flat)[2][0] if len(flat) >= 2 and flat.any() else np.eye(3)[0]
-    e1 = e1 - (e1 @ up) * up
-    if np.linalg.norm(e1) < 1e-9:
-        e1 = np.eye(3)[np.argmin(np.abs(up))] - up * up[np.argmin(np.abs(up))]
-    e1 /= np.linalg.norm(e1)
-    return np.array([e1, np.cross(up, e1), up])
-
-
-def _pose_figures(
-    pred: _Cameras | None, gt: _Cameras | None, points: FloatArray
-) -> tuple[str, dict[str, str]]:
-    """Top+side view PNG and the three 3D-angle PNGs, as data URIs."""
-    main = pred if pred is not None else gt
-    assert main is not None  # the caller checks
-    basis = _plot_basis(main)
-    origin = main.centers.mean(0)
-    spread = np.ptp(main.centers, axis=0).max() if len(main.centers) > 1 else 1.0
-    arrow = 0.12 * max(float(spread), 1e-6)
-    # GT last and hollow, so a perfect reconstruction shows both markers.
-    gt_label = "GT (aligned)" if pred is not None else "GT"
-    sets = [
-        (c, name, color)
-        for c, name, color in (
-            (pred, "reconstruction", "tab:blue"),
-            (gt, gt_label, "tab:orange"),
-        )
-        if c is not None
-    ]
-    local_pts = (points - origin) @ basis.T
-    if len(local_pts):  # drop far outliers so the cameras stay readable
-        lo, hi = np.percentile(local_pts, [2, 98], axis=0)
-        local_pts = local_pts[np.all((local_pts >= lo) & (local_pts <= hi), axis=1)]
-
-    fig = _new_figure(12.0, 4.6)
-    axes = fig.subplots(1, 2)
-    for ax, (i, j), label in zip(
-        axes, ((0, 1), (0, 2)), ("top view", "side view"), strict=True
-    ):
-        if len(local_pts):
-            ax.scatter(
-                local_pts[:, i],
-                local_pts[:, j],
-                s=1,
-                c="0.65",
-                lw=0,
-                label="sparse points",
-            )
-        for cams, name, color in sets:
-            c = (cams.centers - origin) @ basis.T
-            d = cams.directions @ basis.T * arrow
-            ax.quiver(
-                c[:, i],
-                c[:, j],
-                d[:, i],
-                d[:, j],
-                color=color,
-                angles="xy",
-                scale_units="xy",
-                scale=1,
-                width=0.004,
-            )
-            hollow = cams is gt and pred is not None
-            ax.scatter(
-                c[:, i],
-                c[:, j],
-                s=70 if hollow else 30,
-                label=name,
-                zorder=3,
-                facecolors="none" if hollow else color,
-                edgecolors=color,
-            )
-            if cams is main:
-                for n, x, y in zip(cams.names, c[:, i], c[:, j], strict=True):
-                    ax.annotate(
-                        Path(n).stem,
-                        (x, y),
-                        fontsize=7,
-                        xytext=(3, 3),
-                        textcoords="offset points",
-                    )
-        ax.set_aspect("equal", adjustable="datalim")
-        ax.set_title(label)
-        ax.set_xlabel("horizontal axis 1")
-        ax.set_ylabel("horizontal axis 2" if j == 1 else "up")
-        ax.grid(alpha=0.3)
-    axes[0].legend(loc="best", fontsize=8)
-    flat = _figure_uri(fig)
-
-    views = {}
-    for view, (elev, azim) in VIEW_ANGLES_DEG.items():
-        fig = _new_figure(6.0, 4.6)
-        ax = fig.add_subplot(projection="3d")
-        if len(local_pts):
-            ax.scatter(*local_pts.T, s=1, c="0.65", lw=0)
-        for cams, name, color in sets:
-            c = (cams.centers - origin) @ basis.T
-            d = cams.directions @ basis.T * arrow
-            ax.quiver(*c.T, *d.T, color=color)
-            hollow = cams is gt and pred is not None
-            ax.scatter(
-                *c.T,
-                s=60 if hollow else 25,
-                label=name,
-                depthshade=False,
-                facecolors="none" if hollow else color,
-                edgecolors=color,
-            )
-        ax.view_init(elev=elev, azim=azim)
-        ax.set_box_aspect(None)
-        ax.set_title(f"{view} view", fontsize=10)
-        ax.legend(loc="upper left", fontsize=7)
-        views[view] = _figure_uri(fig)
-    return flat, views
-
-
-def _error_curve(curves: Mapping[str, FloatArray]) -> str:
-    """Cumulative pose-error curves (fraction of pairs below each error), as a URI."""
-    return _figure_uri(error_curve_figure(curves))
-
-
-def error_curve_figure(curves: Mapping[str, FloatArray]) -> Figure:
-    """Cumulative pose-error curves: per method, the share of pairs below each error."""
-    fig = _new_figure(6.4, 4.6)
-    ax = fig.add_subplot()
-    grid = np.linspace(0.0, 180.0, 721)
-    for name, errors in curves.items():
-        frac = np.searchsorted(np.sort(errors), grid, side="right") / max(
-            len(errors), 1
-        )
-        ax.step(grid, frac, where="post", label=f"{name} ({len(errors)} pairs)")
-    for t in THRESHOLDS_DEG:
-        ax.axvline(t, color="0.4", ls="--", lw=0.8)
-        ax.text(t, 1.02, f"{t:g}°", ha="center", fontsize=8)
-    ax.set_xlim(0, 183)  # room for the step of unregistered pairs at 180
-    ax.set_ylim(0, 1.06)
-    ax.set_xticks(np.arange(0, 181, 30))
-    ax.set_xlabel("relative pose error (deg): max(rotation, translation angle)")
-    ax.set_ylabel("fraction of image pairs")
-    ax.grid(alpha=0.3)
-    ax.legend(loc="lower right", fontsize=8)
-    return fig
-
-
-# ---------------------------------------------------------------- HTML pieces
 
 CSS = """
 body{font:14px/1.45 system-ui,-apple-system,'Segoe UI',Roboto,'DejaVu Sans',sans-serif;
@@ -790,7 +363,7 @@ def _pairs_section(ctx: _Context) -> str:
             caption += f"; epipolar errors unknown ({source})"
         parts.append(
             f'<figure class="pair" data-pair="{pair[0]}-{pair[1]}">'
-            f'<img alt="pair {pair[0]}-{pair[1]}" src="{_jpeg_uri(panel)}">'
+            f'<img alt="pair {pair[0]}-{pair[1]}" src="{jpeg_uri(panel)}">'
             f"<figcaption>{caption}</figcaption></figure>"
         )
     parts.append("</div></section>")
@@ -836,7 +409,7 @@ def _people_section(ctx: _Context) -> str:
         parts.append(
             f'<figure class="person" data-image="{image_id}">'
             f'<img alt="people in {_esc(ctx.names[image_id])}" '
-            f'src="{_jpeg_uri(panel)}"><figcaption><b>{_esc(ctx.names[image_id])}'
+            f'src="{jpeg_uri(panel)}"><figcaption><b>{_esc(ctx.names[image_id])}'
             f"</b>: {_esc(who)}</figcaption></figure>"
         )
     parts.append("</div></section>")
@@ -928,8 +501,8 @@ def _poses_section(ctx: _Context) -> tuple[str, dict[str, Any]]:
     """Camera plot + error curve, and the metrics of the model vs GT (if both)."""
     parts = ['<section id="poses"><h2>Camera poses</h2>']
     extra: dict[str, Any] = {}
-    pred = _Cameras.of(ctx.model) if ctx.model is not None else None
-    gt = _Cameras.of(ctx.gt) if ctx.gt is not None else None
+    pred = PlotCameras.of(ctx.model) if ctx.model is not None else None
+    gt = PlotCameras.of(ctx.gt) if ctx.gt is not None else None
     if pred is None:
         parts.append(
             _missing(
@@ -949,7 +522,7 @@ def _poses_section(ctx: _Context) -> tuple[str, dict[str, Any]]:
         if len(common) >= 3:
             src = gt.centers[[gt.names.index(n) for n in common]]
             dst = pred.centers[[pred.names.index(n) for n in common]]
-            gt = gt.transformed(*_similarity(src, dst))
+            gt = gt.transformed(*similarity(src, dst))
         else:
             parts.append(
                 _missing(
@@ -960,8 +533,8 @@ def _poses_section(ctx: _Context) -> tuple[str, dict[str, Any]]:
             gt = None
     main = pred if pred is not None else gt
     if main is not None and len(main.names):
-        points = _points(ctx.model) if ctx.model is not None else np.zeros((0, 3))
-        flat, views = _pose_figures(pred, gt, points)
+        points = model_points(ctx.model) if ctx.model is not None else np.zeros((0, 3))
+        flat, views = pose_figures(pred, gt, points)
         aligned = (
             " GT cameras (hollow) are aligned to the reconstruction by a "
             "similarity (Umeyama on camera centres)."
@@ -1001,7 +574,7 @@ def _poses_section(ctx: _Context) -> tuple[str, dict[str, Any]]:
     curves.update(_metrics_rows(ctx.inputs.metrics or {})[1])
     if curves:
         parts.append(
-            f'<img alt="pose error curve" src="{_error_curve(curves)}">'
+            f'<img alt="pose error curve" src="{error_curve_uri(curves)}">'
             '<p class="sub" style="max-width:640px">Fraction of GT image pairs '
             "whose relative pose error is below x; unregistered pairs count as "
             "180°. Dashed: the AUC thresholds.</p>"

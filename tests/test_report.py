@@ -20,10 +20,9 @@ from colmap_vc import database
 from colmap_vc.augment import AugmentOptions
 from colmap_vc.augment import run as augment
 from colmap_vc.evaluation import evaluate_reconstruction
-from colmap_vc.report import (
+from colmap_vc.report import ReportInputs, build_report
+from colmap_vc.report_draw import (
     PANEL_GAP_PX,
-    ReportInputs,
-    build_report,
     draw_pair,
     epipolar_errors_px,
     error_colors_bgr,
