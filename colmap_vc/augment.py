@@ -11,7 +11,7 @@ import dataclasses
 import itertools
 import logging
 import time
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
@@ -19,37 +19,39 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from . import __version__, database, raycast
+from . import __version__, database
 from .association import AssociationOptions, LinkEvidence, PersonCue, associate
 from .matching import (
     MatchingOptions,
     PersonMatches,
     PersonObservations,
-    TemplateSamples,
-    match_persons,
-    observe_person,
-    refit_image_prior,
-    sample_template,
-    template_key,
 )
 from .priors import read_priors
 from .static_cameras import merge_priors, parse_static_cameras
 from .structs import (
     FloatArray,
     HitKind,
-    ImagePrior,
     IndexArray,
     PairGeometry,
     PairVcMatches,
     ScenePriors,
     VcKeypoints,
 )
+from .vc_pairs import (
+    concat_matches,
+    gather,
+    initial_thickness,
+    link_evidence,
+    observation_codes,
+    observe_image,
+    person_cues,
+    template_samples,
+)
 from .verification import (
     Verification,
     VerificationOptions,
     cycle_inconsistent_pairs,
     inverted,
-    verify_pair,
     verify_pair_with_classic,
 )
 
@@ -151,191 +153,6 @@ class AugmentSummary:
         return sum(p.verified for p in self.pairs)
 
 
-def _template_samples(
-    priors: ScenePriors, num_samples: int
-) -> dict[str, TemplateSamples]:
-    """Samples per topology, from the first mesh of it (images in name order)."""
-    out: dict[str, TemplateSamples] = {}
-    for name in sorted(priors.images):
-        for person in priors.images[name].persons:
-            key = template_key(person)
-            if key not in out:
-                out[key] = sample_template(
-                    person.vertices_cam, person.faces, key, num_samples
-                )
-    return out
-
-
-def observe_image(
-    priors: ScenePriors,
-    image_name: str,
-    camera: pycolmap.Camera,
-    samples: Mapping[str, TemplateSamples],
-    options: MatchingOptions,
-    groups: Sequence[str] | None = None,
-) -> tuple[ImagePrior, list[PersonObservations]]:
-    """The re-posed priors of one image and the observations of every person.
-
-    ``groups`` (one per person): people occlude only people of their own group
-    (instant), for a static camera's view that holds several instants.
-    """
-    prior = refit_image_prior(priors.images[image_name], camera, options)
-    groups = groups or [""] * len(prior.persons)
-    out = []
-    for group in sorted(set(groups)):  # loop over instants of the view
-        members = [k for k, g in enumerate(groups) if g == group]
-        sub = dataclasses.replace(
-            prior, persons=tuple(prior.persons[k] for k in members)
-        )
-        others = None
-        if len(members) > 1 and options.people_occlude:
-            others = raycast.build_scene(
-                [(p.vertices_cam, p.faces) for p in sub.persons]
-            )
-        for j, k in enumerate(members):
-            obs = observe_person(
-                sub, j, camera, samples[template_key(sub.persons[j])], options, others
-            )
-            out.append((k, dataclasses.replace(obs, person_index=k)))
-    return prior, [obs for _, obs in sorted(out, key=lambda kv: kv[0])]
-
-
-def _concat(matches: list[tuple[int, int, PersonMatches]]) -> tuple[IndexArray, ...]:
-    """(person 1, row 1, person 2, row 2, kind, track) of the concatenated matches."""
-    if not matches:
-        z = np.zeros(0, np.int64)
-        return z, z, z, z, z, z
-    return tuple(
-        np.concatenate(parts)
-        for parts in zip(
-            *[
-                (
-                    np.full(len(m), k1),
-                    m.idx1,
-                    np.full(len(m), k2),
-                    m.idx2,
-                    m.kind,
-                    m.track_id,
-                )
-                for k1, k2, m in matches
-            ],
-            strict=True,
-        )
-    )
-
-
-def _gather(
-    obs: list[PersonObservations], person: IndexArray, row: IndexArray, attr: str
-) -> FloatArray:
-    """Rows ``row`` of attribute ``attr`` of the observations of people ``person``."""
-    first = getattr(obs[0], attr) if obs else np.zeros((0, 2))
-    out = np.zeros((len(row), *first.shape[1:]))
-    for k in range(len(obs)):  # loop over people, vectorized over matches
-        sel = person == k
-        out[sel] = getattr(obs[k], attr)[row[sel]]
-    return out
-
-
-def _codes(person: IndexArray, row: IndexArray) -> IndexArray:
-    """One int64 per (person, observation row)."""
-    return person.astype(np.int64) * (1 << 32) + row.astype(np.int64)
-
-
-def _thickness(
-    x1: FloatArray,
-    x2: FloatArray,
-    p1: FloatArray,
-    p2: FloatArray,
-    geometry: PairGeometry | None,
-) -> tuple[FloatArray, FloatArray]:
-    """Initial (a, b) with X2 = X1 + a (X1 - o1) + b (o2 - o1), in camera 1's frame.
-
-    The relative pose fixes directions; its scale comes from the meshes (the
-    meeting points ``p1``/``p2`` should coincide). NaN first hits give a = b = 0.
-    """
-    a, b = np.zeros(len(x1)), np.zeros(len(x1))
-    if geometry is None or len(x1) == 0:
-        return a, b
-    R, t = geometry.cam2_from_cam1[:, :3], geometry.cam2_from_cam1[:, 3]
-    c = -R.T @ t  # camera 2's centre in camera 1 (unit baseline)
-    # S1 = R^T S2 + s c for the meeting point S seen in both frames.
-    scale = np.nanmedian((p1 - p2 @ R) @ c)
-    scale = float(scale) if np.isfinite(scale) and scale > 0 else 1.0
-    o2 = scale * c
-    x2_in_1 = (x2 - scale * t) @ R  # R^T (X2 - s t)
-    # Least squares of [X1 | o2] (a, b)^T = X2 - X1, one 3x2 system per VC.
-    A = np.stack([x1, np.broadcast_to(o2, x1.shape)], axis=2)  # (M, 3, 2)
-    rhs = x2_in_1 - x1
-    AtA = np.einsum("mki,mkj->mij", A, A)
-    Atb = np.einsum("mki,mk->mi", A, rhs)
-    ok = np.isfinite(AtA).all(axis=(1, 2)) & np.isfinite(Atb).all(axis=1)
-    ok &= np.abs(np.linalg.det(np.where(ok[:, None, None], AtA, np.eye(2)))) > 1e-12
-    sol = np.zeros((len(x1), 2))
-    if ok.any():
-        sol[ok] = np.linalg.solve(AtA[ok], Atb[ok][..., None])[..., 0]
-    return sol[:, 0], sol[:, 1]
-
-
-def _link_evidence(
-    n1: str,
-    n2: str,
-    obs1: list[PersonObservations],
-    obs2: list[PersonObservations],
-    cam1: pycolmap.Camera,
-    cam2: pycolmap.Camera,
-    cache: dict[tuple[str, str, int, int], PersonMatches],
-    options: AugmentOptions,
-) -> list[LinkEvidence]:
-    """Every person link of one pair, verified on its own VCs (a subsample)."""
-    out = []
-    for a, b in itertools.product(range(len(obs1)), range(len(obs2))):
-        m = match_persons(obs1[a], obs2[b])
-        cache[(n1, n2, a, b)] = m
-        if len(m) < options.min_num_vcs:
-            continue
-        rows = np.arange(len(m))
-        if len(m) > options.max_link_vcs:  # evenly spread, deterministic
-            rows = np.linspace(0, len(m) - 1, options.max_link_vcs).round()
-            rows = np.unique(rows.astype(np.int64))
-        result = verify_pair(
-            cam1,
-            cam2,
-            obs1[a].xy_img[m.idx1[rows]],
-            obs2[b].xy_img[m.idx2[rows]],
-            options=options.verification,
-        )
-        out.append(
-            LinkEvidence(
-                image_name1=n1,
-                image_name2=n2,
-                person1=a,
-                person2=b,
-                num_vcs=len(rows),
-                num_inliers=int(result.vc_is_inlier.sum()),
-                cam2_from_cam1=None
-                if result.geometry is None
-                else result.geometry.cam2_from_cam1,
-            )
-        )
-    return out
-
-
-def _person_cues(
-    name: str, prior: ImagePrior, groups: Sequence[str] | None = None
-) -> list[PersonCue]:
-    return [
-        PersonCue(
-            image_name=name,
-            index=k,
-            person_id=p.person_id,
-            vertices_cam=p.vertices_cam,
-            appearance=p.appearance,
-            group=groups[k] if groups else "",
-        )
-        for k, p in enumerate(prior.persons)
-    ]
-
-
 def compute_virtual_correspondences(
     views: database.DatabaseViews,
     priors: ScenePriors,
@@ -384,7 +201,7 @@ def compute_virtual_correspondences(
     # the same images give the same VCs whatever order COLMAP wrote them in.
     names = sorted(names)
     t0 = time.perf_counter()
-    samples = _template_samples(priors, options.matching.num_samples)
+    samples = template_samples(priors, options.matching.num_samples)
     observations: dict[str, list[PersonObservations]] = {}
     cues: list[PersonCue] = []
     for name in tqdm(
@@ -400,7 +217,7 @@ def compute_virtual_correspondences(
         prior, observations[name] = observe_image(
             priors, name, camera, samples, options.matching, groups
         )
-        cues += _person_cues(name, prior, groups)
+        cues += person_cues(name, prior, groups)
     timings["observe"] = time.perf_counter() - t0
 
     def camera_of(name: str) -> pycolmap.Camera:
@@ -425,7 +242,7 @@ def compute_virtual_correspondences(
     for n1, n2 in tqdm(
         name_pairs, desc="person links", disable=not options.show_progress, leave=False
     ):
-        links += _link_evidence(
+        links += link_evidence(
             n1,
             n2,
             observations[n1],
@@ -449,7 +266,7 @@ def compute_virtual_correspondences(
         leave=False,
     ):
         pair_links = association.links[(n1, n2)]
-        cat = _concat([(a, b, cache[(n1, n2, a, b)]) for a, b in pair_links])
+        cat = concat_matches([(a, b, cache[(n1, n2, a, b)]) for a, b in pair_links])
         if len(cat[0]) < options.min_num_vcs:
             continue
         id1, id2 = pair_ids(n1, n2)
@@ -469,8 +286,8 @@ def compute_virtual_correspondences(
         result = verify_pair_with_classic(
             camera_of(n1),
             camera_of(n2),
-            _gather(observations[n1], cat[0], cat[1], "xy_img"),
-            _gather(observations[n2], cat[2], cat[3], "xy_img"),
+            gather(observations[n1], cat[0], cat[1], "xy_img"),
+            gather(observations[n2], cat[2], cat[3], "xy_img"),
             cxy1,
             cxy2,
             options.verification,
@@ -527,8 +344,8 @@ def compute_virtual_correspondences(
     candidates.sort(key=lambda c: pair_ids(c[0], c[1]))
     used: dict[str, list[IndexArray]] = {n: [] for n in names}
     for n1, n2, _, cat, *_rest in candidates:
-        used[n1].append(_codes(cat[0], cat[1]))
-        used[n2].append(_codes(cat[2], cat[3]))
+        used[n1].append(observation_codes(cat[0], cat[1]))
+        used[n2].append(observation_codes(cat[2], cat[3]))
     timings["match_verify"] = timings["associate"] + timings["verify"]
 
     # VC keypoints per image: every observation some pair uses, grouped by person.
@@ -549,9 +366,9 @@ def compute_virtual_correspondences(
         keypoints.append(
             VcKeypoints(
                 image_id=int(views.image_ids[name_to_idx[name]]),
-                xy_img=_gather(obs, person, row, "xy_img"),
+                xy_img=gather(obs, person, row, "xy_img"),
                 person_id=pid_of[person],
-                track_id=_gather(obs, person, row, "track_id").astype(np.int64),
+                track_id=gather(obs, person, row, "track_id").astype(np.int64),
             )
         )
 
@@ -565,18 +382,18 @@ def compute_virtual_correspondences(
         id2 = int(views.image_ids[name_to_idx[n2]])
         k1, r1, k2, r2, kind, _ = cat
         obs1, obs2 = observations[n1], observations[n2]
-        idx1 = np.searchsorted(codes_of[n1], _codes(k1, r1))
-        idx2 = np.searchsorted(codes_of[n2], _codes(k2, r2))
-        x1 = _gather(obs1, k1, r1, "first_hit_cam")
-        p1 = _gather(obs1, k1, r1, "point_cam")
-        x2 = _gather(obs2, k2, r2, "first_hit_cam")
-        p2 = _gather(obs2, k2, r2, "point_cam")
+        idx1 = np.searchsorted(codes_of[n1], observation_codes(k1, r1))
+        idx2 = np.searchsorted(codes_of[n2], observation_codes(k2, r2))
+        x1 = gather(obs1, k1, r1, "first_hit_cam")
+        p1 = gather(obs1, k1, r1, "point_cam")
+        x2 = gather(obs2, k2, r2, "first_hit_cam")
+        p2 = gather(obs2, k2, r2, "point_cam")
         pid_of = np.array(
             [o.person_id if o.person_id >= 0 else k for k, o in enumerate(obs1)],
             np.int64,
         )
         pid = pid_of[k1]
-        a, b = _thickness(x1, x2, p1, p2, result.geometry)
+        a, b = initial_thickness(x1, x2, p1, p2, result.geometry)
         pairs.append(
             PairVcMatches(
                 image_id1=id1,
