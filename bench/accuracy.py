@@ -29,6 +29,7 @@ from __future__ import annotations
 import argparse
 import itertools
 import logging
+import re
 import shutil
 import time
 from pathlib import Path
@@ -473,12 +474,14 @@ def main() -> None:
         "![error vs angle](img/error_vs_angle.png)",
         "",
     ]
-    # Keep the sections other benches own (the real-photo results of pose2sim.py).
+    # Keep the sections other benches own (<!-- name:begin --> ... <!-- name:end -->:
+    # pose2sim.py, realdata.py, detection.py, static_cameras.py, ...), in order.
     path = DOCS / "results.md"
     old = path.read_text() if path.exists() else ""
-    begin, end = "<!-- pose2sim:begin -->", "<!-- pose2sim:end -->"
-    if begin in old and end in old:
-        doc += ["", old[old.index(begin) : old.index(end) + len(end)], ""]
+    for name in re.findall(r"<!-- ([\w-]+):begin -->", old):
+        begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
+        if end in old:
+            doc += ["", old[old.index(begin) : old.index(end) + len(end)], ""]
     path.write_text("\n".join(doc))
     print("\n".join(doc))
 
