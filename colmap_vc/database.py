@@ -9,13 +9,11 @@ The contract (tables, what ``augment`` changes, ``strip``) is in docs/database.m
 
 from __future__ import annotations
 
-import contextlib
 import hashlib
 import json
 import logging
-import os
 import sqlite3
-from collections.abc import Iterable, Iterator, Mapping, Sequence
+from collections.abc import Iterable, Mapping, Sequence
 from dataclasses import dataclass
 from os import PathLike
 from pathlib import Path
@@ -27,6 +25,16 @@ import pycolmap
 from colmap_vc import __version__
 from colmap_vc import database_schema as sch
 from colmap_vc import database_write as dbw
+from colmap_vc.database_access import (
+    BUSY_TIMEOUT_S,
+    COMMITTED,
+    check_before_write,
+    connect,
+    require_intact,
+    require_writable,
+    snapshot,
+    transaction,
+)
 from colmap_vc.database_schema import AssociationMethod, Schema
 from colmap_vc.structs import (
     FloatArray,
@@ -38,10 +46,33 @@ from colmap_vc.structs import (
 
 logger = logging.getLogger(__name__)
 
-BUSY_TIMEOUT_S = 0.5  # fail fast (RuntimeError) when another process writes
-COMMITTED: list[Path] = []
-"""Databases this process changed (committed transactions), for the CLI's report
-after an interrupt: any other database is as it was."""
+__all__ = [
+    "BUSY_TIMEOUT_S",
+    "COMMITTED",
+    "AssociationMethod",
+    "DatabaseViews",
+    "PersonAssociation",
+    "Schema",
+    "StripSummary",
+    "TwoViewGeometryRow",
+    "WriteSummary",
+    "check_before_write",
+    "drop_classic_matches",
+    "read_keypoints",
+    "read_matches",
+    "read_person_associations",
+    "read_run_info",
+    "read_two_view_geometries",
+    "read_views",
+    "read_virtual_correspondences",
+    "require_writable",
+    "snapshot",
+    "strip",
+    "table_checksums",
+    "write_virtual_correspondences",
+]
+
+
 Pair = tuple[int, int]
 
 
@@ -130,126 +161,6 @@ class StripSummary:
 # ---------------------------------------------------------------- connections
 
 
-@contextlib.contextmanager
-def _connect(
-    db_path: str | PathLike[str], *, write: bool
-) -> Iterator[tuple[sqlite3.Connection, Schema]]:
-    """Open an existing COLMAP database (never creates one) and detect its schema."""
-    path = Path(db_path)
-    if not path.is_file():
-        raise FileNotFoundError(f"COLMAP database not found: {path}")
-    if write:
-        require_writable(path)
-    # Reads open read-write with query_only where the user may write: SQLite's
-    # last read-write connection removes the -wal/-shm files of a WAL database on
-    # close, a read-only one leaves them behind. query_only refuses every write.
-    mode = "rw" if write or _writable(path) else "ro"
-    # A read-only folder: SQLite cannot create the -shm file a WAL database needs,
-    # and nobody can write the database without creating its -wal file there, so
-    # an existing -wal is the only sign of a writer.
-    if (
-        not write
-        and not os.access(path.parent, os.W_OK)
-        and not Path(f"{path}-wal").exists()
-    ):
-        mode += "&immutable=1"
-    conn = sqlite3.connect(
-        f"{path.resolve().as_uri()}?mode={mode}",
-        uri=True,
-        timeout=BUSY_TIMEOUT_S,
-        isolation_level=None,  # transactions are explicit, see _transaction()
-    )
-    try:
-        if not write:
-            conn.execute("PRAGMA query_only = ON")
-        try:
-            tables = sch.table_names(conn)
-        except sqlite3.DatabaseError as error:
-            if "locked" in str(error):
-                raise RuntimeError(f"{path} is locked: {error}") from error
-            raise ValueError(f"{path} is not a SQLite database: {error}") from error
-        missing = [t for t in sch.COLMAP_TABLES if t not in tables]
-        if missing:
-            raise ValueError(f"{path} is not a COLMAP database: no tables {missing}")
-        try:
-            yield conn, sch.detect_schema(tables)
-        except sqlite3.OperationalError as error:
-            if "locked" in str(error) or "busy" in str(error):
-                raise RuntimeError(f"{path} is locked: {error}") from error
-            raise
-    finally:
-        conn.close()
-
-
-def _writable(path: Path) -> bool:
-    return os.access(path, os.W_OK) and os.access(path.parent, os.W_OK)
-
-
-def require_writable(db_path: str | PathLike[str]) -> None:
-    """Raise PermissionError unless the database and its folder (SQLite writes its
-    rollback journal there) are writable by this process."""
-    path = Path(db_path)
-    for what, target in (("database", path), ("folder of the database", path.parent)):
-        if not os.access(target, os.W_OK):
-            raise PermissionError(
-                f"the {what} {target} is read-only: make it writable (chmod u+w) or "
-                "work on a copy; nothing was changed"
-            )
-
-
-def check_before_write(db_path: str | PathLike[str]) -> None:
-    """Everything that would make a later VC write fail, checked now (only reads).
-
-    ``augment`` calls this before it computes VCs, so a read-only, damaged or
-    user-changed database is refused in a second, not after minutes of work.
-    Raises PermissionError or ValueError (see :func:`write_virtual_correspondences`).
-    """
-    path = Path(db_path)
-    require_writable(path)
-    with _connect(path, write=False) as (conn, _):
-        _require_intact(conn, path)
-        if "colmap_vc_state" in sch.vc_table_names(conn):
-            try:
-                dbw.require_strippable(conn)
-            except ValueError as error:
-                raise ValueError(
-                    f"{path}: cannot replace the earlier VCs: {error}"
-                ) from error
-
-
-@contextlib.contextmanager
-def _transaction(conn: sqlite3.Connection, path: Path) -> Iterator[None]:
-    """One write transaction: all or nothing, also if the process dies inside it."""
-    try:
-        conn.execute("BEGIN IMMEDIATE")  # take the write lock now, not mid-way
-    except sqlite3.OperationalError as error:
-        raise RuntimeError(
-            f"{path} is locked by another connection ({error}): close the other "
-            "COLMAP process and retry"
-        ) from error
-    try:
-        yield
-        conn.execute("COMMIT")
-        COMMITTED.append(path)
-    except BaseException:
-        if conn.in_transaction:
-            conn.execute("ROLLBACK")
-        raise
-
-
-def _require_intact(conn: sqlite3.Connection, path: Path) -> None:
-    """Refuse to write into a damaged file (SQLite's quick_check reads every page)."""
-    try:
-        problems = [r[0] for r in conn.execute("PRAGMA quick_check(3)")]
-    except sqlite3.DatabaseError as error:
-        problems = [str(error)]
-    if problems != ["ok"]:
-        raise ValueError(
-            f"{path} is damaged ({'; '.join(problems)}): restore it from a backup or "
-            "rebuild it with COLMAP; colmap-vc did not change it"
-        )
-
-
 def _require_keypoints(conn: sqlite3.Connection, path: Path) -> None:
     num_rows, total = conn.execute(
         "SELECT COUNT(*), COALESCE(SUM(rows), 0) FROM keypoints"
@@ -291,7 +202,7 @@ def _pair_rows(
 def read_views(db_path: str | PathLike[str]) -> DatabaseViews:
     """Images, cameras and classic keypoint counts of a database."""
     path = Path(db_path)
-    with _connect(path, write=False) as (conn, schema):
+    with connect(path, write=False) as (conn, schema):
         _require_keypoints(conn, path)
         images = conn.execute(
             "SELECT image_id, name, camera_id FROM images ORDER BY image_id"
@@ -334,7 +245,7 @@ def read_keypoints(
     ``include_vc=False`` returns the classic keypoints only (the rows before the VCs).
     """
     path = Path(db_path)
-    with _connect(path, write=False) as (conn, _):
+    with connect(path, write=False) as (conn, _):
         row = conn.execute(
             "SELECT rows, cols, data FROM keypoints WHERE image_id = ?", (image_id,)
         ).fetchone()
@@ -361,7 +272,7 @@ def read_matches(
     convention) and a pair without a row maps to an empty (0, 2) array.
     ``include_vc=False`` reads the rows as they were before colmap-vc wrote.
     """
-    with _connect(db_path, write=False) as (conn, _):
+    with connect(db_path, write=False) as (conn, _):
         rows = _pair_rows(conn, "matches", "pair_id, rows, data", include_vc)
     stored = {
         sch.images_from_pair_id(pair_id): sch.decode_matches(data, num_rows)
@@ -387,7 +298,7 @@ def read_two_view_geometries(
     ``include_vc=False`` reads the rows as they were before colmap-vc wrote.
     """
     columns = "pair_id, rows, data, config, F, E, H, qvec, tvec"
-    with _connect(db_path, write=False) as (conn, _):
+    with connect(db_path, write=False) as (conn, _):
         rows = _pair_rows(conn, "two_view_geometries", columns, include_vc)
     result: dict[Pair, TwoViewGeometryRow] = {}
     for pair_id, num_rows, data, config, f, e, h, qvec, tvec in rows:
@@ -413,7 +324,7 @@ def read_virtual_correspondences(
 
     Returns empty lists for a database colmap-vc has not augmented.
     """
-    with _connect(db_path, write=False) as (conn, _):
+    with connect(db_path, write=False) as (conn, _):
         vc_images = _vc_images(conn)
         if not vc_images:
             return [], []
@@ -466,7 +377,7 @@ def read_virtual_correspondences(
 
 def read_person_associations(db_path: str | PathLike[str]) -> list[PersonAssociation]:
     """The person associations colmap-vc wrote ([] if none)."""
-    with _connect(db_path, write=False) as (conn, _):
+    with connect(db_path, write=False) as (conn, _):
         if "colmap_vc_person_pairs" not in sch.vc_table_names(conn):
             return []
         rows = conn.execute(
@@ -488,7 +399,7 @@ def read_person_associations(db_path: str | PathLike[str]) -> list[PersonAssocia
 
 def table_checksums(db_path: str | PathLike[str]) -> dict[str, str]:
     """sha256 of every table's rows in rowid order: equal dicts = equal contents."""
-    with _connect(db_path, write=False) as (conn, _):
+    with connect(db_path, write=False) as (conn, _):
         checksums = {}
         for table in sch.table_names(conn):
             digest = hashlib.sha256()
@@ -531,8 +442,8 @@ def write_virtual_correspondences(
     needed = set(by_image) | {i for pair in geometries for i in pair}
     counts = np.zeros(4, np.int64)
     num_desc = 0
-    with _connect(path, write=True) as (conn, schema), _transaction(conn, path):
-        _require_intact(conn, path)
+    with connect(path, write=True) as (conn, schema), transaction(conn, path):
+        require_intact(conn, path)
         _require_keypoints(conn, path)
         missing = needed - {
             row[0] for row in conn.execute("SELECT image_id FROM images")
@@ -625,8 +536,8 @@ def strip(db_path: str | PathLike[str], *, force: bool = False) -> StripSummary:
     as the user left them, minus the matches that index VC keypoints.
     """
     path = Path(db_path)
-    with _connect(path, write=True) as (conn, _), _transaction(conn, path):
-        _require_intact(conn, path)
+    with connect(path, write=True) as (conn, _), transaction(conn, path):
+        require_intact(conn, path)
         try:
             summary = StripSummary(**dbw.strip_rows(conn, force=force))
         except ValueError as error:
@@ -645,24 +556,6 @@ def strip(db_path: str | PathLike[str], *, force: bool = False) -> StripSummary:
     return summary
 
 
-def snapshot(db_path: str | PathLike[str], copy_path: str | PathLike[str]) -> Path:
-    """A consistent copy of the database at ``copy_path``; the original is only read.
-
-    pycolmap's mappers open their database read-write and migrate it to their
-    schema; ``map`` gives them this copy so the user's file is never written.
-    """
-    path, copy = Path(db_path), Path(copy_path)
-    with _connect(path, write=False) as (conn, _):
-        target = sqlite3.connect(copy)
-        try:
-            conn.backup(target)
-        except sqlite3.OperationalError as error:
-            raise RuntimeError(f"cannot copy {path} to {copy}: {error}") from error
-        finally:
-            target.close()
-    return copy
-
-
 def drop_classic_matches(db_path: str | PathLike[str]) -> int:
     """Delete every match and two-view geometry row (for a VC-only ablation copy).
 
@@ -670,7 +563,7 @@ def drop_classic_matches(db_path: str | PathLike[str]) -> int:
     of pairs removed.
     """
     path = Path(db_path)
-    with _connect(path, write=True) as (conn, _), _transaction(conn, path):
+    with connect(path, write=True) as (conn, _), transaction(conn, path):
         if sch.vc_table_names(conn):
             raise ValueError(
                 f"{path} holds colmap-vc VCs: strip it before dropping matches"
@@ -685,7 +578,7 @@ def drop_classic_matches(db_path: str | PathLike[str]) -> int:
 def read_run_info(db_path: str | PathLike[str]) -> dict[str, Any]:
     """The run description `augment` recorded ({} for a database never augmented)."""
     path = Path(db_path)
-    with _connect(path, write=False) as (conn, _):
+    with connect(path, write=False) as (conn, _):
         if "colmap_vc_state" not in sch.vc_table_names(conn):
             return {}
         row = conn.execute(
