@@ -73,6 +73,24 @@ class AssociationOptions:
     prior's scale error (one person's realistic synthetic priors differ by up to
     0.3 m, MediaPipe fits on pose2sim by up to 0.16 m), so height only breaks ties
     between people of clearly different size."""
+    pose_range_deg: float = 180.0
+    """Where a *wrong* pair of links puts its pose disagreement: anywhere in 0-180
+    deg (pose2sim_multi, one right and one wrong link: median 120, 10-90% 54-171).
+    With ``pose_sigma_deg`` it makes the pose term a likelihood *ratio*: positive
+    for links that agree, negative for links that do not, so a set of many
+    consistent links (static cameras: every instant's people) scores higher than
+    a set of few, instead of paying a penalty per link."""
+    pose_inlier_prob: float = 0.5
+    """Probability that two *right* links' VC poses agree to ``pose_sigma_deg``;
+    otherwise one of them is a RANSAC failure, spread like a wrong link's. One-person
+    VC poses fail often on real photos: on pose2sim_multi two right links disagree
+    by a median 77 deg (10-90%: 12-146, close to uniform), on one-person synthetic
+    pairs by 38. The mixture bounds what one failed pose costs (log 0.5) instead of
+    letting it outweigh appearance and layout."""
+    layout_range_frac: float = 1.2
+    """The same for the layout error: a wrong pair of links spreads it over about
+    0-1.2 of the people's depth (pose2sim_multi: median 0.72, 10-90% 0.27-1.04;
+    both links right: median 0.19)."""
     min_link_margin: float = 0.25
     """A link is kept only when the best assignment holding it beats the best one
     without it by this log-likelihood (else the pair abstains for that person)."""
@@ -181,11 +199,18 @@ def _pairwise(
     cues: Mapping[PersonKey, PersonCue],
     options: AssociationOptions,
 ) -> float:
-    """Log-likelihood that two non-conflicting links of one pair share one motion."""
+    """Log-likelihood ratio that two non-conflicting links of one pair share one
+    motion: a half-normal of the disagreement (both links right) against a uniform
+    spread (one of them wrong), for the layout and for the VC poses (these with a
+    share of failed poses, ``pose_inlier_prob``)."""
     k = 0.0
     if l1.cam2_from_cam1 is not None and l2.cam2_from_cam1 is not None:
         d = pose_disagreement_deg(l1.cam2_from_cam1, l2.cam2_from_cam1)
-        k -= 0.5 * (d / options.pose_sigma_deg) ** 2
+        ratio = math.exp(
+            _half_normal_vs_uniform(d, options.pose_sigma_deg, options.pose_range_deg)
+        )
+        w = options.pose_inlier_prob
+        k += math.log(w * ratio + (1.0 - w))
     e = _layout_error(
         cues[(l1.image_name1, l1.person1)],
         cues[(l2.image_name1, l2.person1)],
@@ -193,8 +218,17 @@ def _pairwise(
         cues[(l2.image_name2, l2.person2)],
     )
     if math.isfinite(e):
-        k -= 0.5 * (e / options.layout_sigma_frac) ** 2
+        k += _half_normal_vs_uniform(
+            e, options.layout_sigma_frac, options.layout_range_frac
+        )
     return k
+
+
+def _half_normal_vs_uniform(x: float, sigma: float, spread: float) -> float:
+    """log of a half-normal(sigma) density over a uniform one on [0, spread], at x."""
+    return math.log(2.0 * spread / (math.sqrt(2.0 * math.pi) * sigma)) - 0.5 * (
+        x / sigma
+    ) ** 2
 
 
 def _conflict(l1: LinkEvidence, l2: LinkEvidence) -> bool:

@@ -200,3 +200,53 @@ def test_appearance_distance(a, b, expected) -> None:
         assert np.isnan(d)
     else:
         assert d == pytest.approx(expected)
+
+
+def test_static_cameras_many_instants_link_everyone() -> None:
+    """Static cameras: one view per camera holds the people of every instant, so a
+    pair has one link per person and instant (here 12). The links of real photos
+    give VC poses 40-120 deg apart even when right (pose2sim_multi); a set of many
+    consistent links must still beat a set of few (the pairwise terms are
+    likelihood ratios, not penalties per link)."""
+    rng = np.random.default_rng(0)
+    cams = _cameras(3)
+    instants = 6
+    cues, truth = [], {}
+    for name, T in cams.items():
+        for t in range(instants):
+            for who in ("A", "B"):
+                pts = _BODY + _WORLD[who] + rng.normal(0.0, 0.1, 3)  # moves a little
+                key = (name, 2 * t + (who == "B"))
+                cues.append(
+                    PersonCue(
+                        image_name=name,
+                        index=key[1],
+                        person_id=None,
+                        vertices_cam=pts @ T[:, :3].T + T[:, 3],
+                        appearance=_WHITE if who == "A" else _RED,
+                        group=f"t{t}",
+                    )
+                )
+                truth[key] = who
+    links = []
+    for c1, c2 in itertools.product(cues, cues):
+        if c1.image_name >= c2.image_name or c1.group != c2.group:
+            continue
+        pose = relative_pose(cams[c1.image_name], cams[c2.image_name])
+        noise = Rotation.from_rotvec(
+            rng.normal(size=3) / np.sqrt(3) * np.radians(rng.uniform(40, 120))
+        ).as_matrix()
+        links.append(
+            LinkEvidence(
+                image_name1=c1.image_name,
+                image_name2=c2.image_name,
+                person1=c1.index,
+                person2=c2.index,
+                num_vcs=400,
+                num_inliers=340 if truth[c1.key] == truth[c2.key] else 330,
+                cam2_from_cam1=np.c_[noise @ pose[:, :3], pose[:, 3]],
+            )
+        )
+    result = associate(cues, links)
+    assert _check(result, truth) == len(cues)
+    assert len(set(result.identity.values())) == 2 * instants
