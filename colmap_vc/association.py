@@ -226,9 +226,10 @@ def _pairwise(
 
 def _half_normal_vs_uniform(x: float, sigma: float, spread: float) -> float:
     """log of a half-normal(sigma) density over a uniform one on [0, spread], at x."""
-    return math.log(2.0 * spread / (math.sqrt(2.0 * math.pi) * sigma)) - 0.5 * (
-        x / sigma
-    ) ** 2
+    return (
+        math.log(2.0 * spread / (math.sqrt(2.0 * math.pi) * sigma))
+        - 0.5 * (x / sigma) ** 2
+    )
 
 
 def _conflict(l1: LinkEvidence, l2: LinkEvidence) -> bool:

@@ -69,6 +69,33 @@ def pose_disagreement_deg(p: FloatArray, q: FloatArray) -> float:
     return max(relative_pose_error(p, q))
 
 
+def camera_distance_ratio(
+    pred: Mapping[str, FloatArray], gt: Mapping[str, FloatArray]
+) -> float:
+    """Median over image pairs of (predicted / true) distance between the two camera
+    centres: 1 for a model in the ground truth's units. NaN with fewer than two
+    images in common (or coincident true centres).
+
+    Args:
+        pred, gt: (3, 4) cam_from_world by image name.
+    """
+    names = sorted(set(pred) & set(gt))
+
+    def centres(poses: Mapping[str, FloatArray]) -> FloatArray:
+        T = np.array([poses[n] for n in names]).reshape(-1, 3, 4)
+        return -np.einsum("nji,nj->ni", T[:, :, :3], T[:, :, 3])
+
+    if len(names) < 2:
+        return math.nan
+    cp, cg = centres(pred), centres(gt)
+    i, j = np.triu_indices(len(names), k=1)
+    dg = np.linalg.norm(cg[i] - cg[j], axis=1)
+    ok = dg > 1e-9
+    if not ok.any():
+        return math.nan
+    return float(np.median(np.linalg.norm(cp[i] - cp[j], axis=1)[ok] / dg[ok]))
+
+
 def pose_auc(
     errors_deg: Sequence[float] | FloatArray, thresholds_deg: Sequence[float]
 ) -> list[float]:

@@ -37,6 +37,11 @@ from .mapping_priors import (
     with_associated_ids,
 )
 from .meshalign import mesh_alignment_poses
+from .metric_scale import (
+    apply_metric_scale_inplace,
+    estimate_metric_scale,
+    write_metric_scale,
+)
 from .static_cameras import StaticCameras, parse_static_cameras
 
 __all__ = [
@@ -274,10 +279,29 @@ def _map_copy(
         )
         if left_out:
             bundle_adjust_inplace(best, options.keypoint_ba_options.loss_scale_px)
+    scale = None
+    if best is not None and priors is not None and options.metric_scale:
+        scale = estimate_metric_scale(database_path, best, priors)
+        if scale is None:
+            logger.info("metric scale: no triangulated keypoints: scale arbitrary")
+        else:
+            apply_metric_scale_inplace(best, scale)
+            logger.info(
+                "metric scale: x%.4f to metres (spread %.1f%% over %d person views "
+                "of %d people)",
+                scale.scale,
+                100 * scale.spread,
+                scale.num_person_views,
+                scale.num_people,
+            )
     if best is not None and static is not None:
         add_static_members_inplace(best, static, views)
-    if best is not None and (options.keypoint_ba or left_out or static is not None):
+    if best is not None and (
+        options.keypoint_ba or left_out or static is not None or scale is not None
+    ):
         best.write(output_dir / str(best_key))
+    if best is not None and scale is not None:
+        write_metric_scale(output_dir / str(best_key), scale)
     elapsed = time.perf_counter() - t0
     reasons = {**_why_unregistered(database_path, best), **left_out}
     if best is None:
@@ -290,6 +314,7 @@ def _map_copy(
         unregistered=reasons,
         model_dir=output_dir / str(best_key),
         elapsed_s=elapsed,
+        metric_scale=scale,
     )
     return best, summary
 

@@ -14,6 +14,7 @@ from pathlib import Path
 import pycolmap
 
 from .keypoint_ba import KeypointBaOptions
+from .metric_scale import MetricScale
 
 
 class Mapper(enum.StrEnum):
@@ -81,6 +82,11 @@ class MappingOptions:
     surface-VC points. A database without keypoint VCs is left as mapped."""
     keypoint_ba_options: KeypointBaOptions = field(default_factory=KeypointBaOptions)
     """Options of that pass."""
+    metric_scale: bool = True
+    """Scale the model to metres from the people's keypoints (colmap_vc/
+    metric_scale.py; the scale and its spread go to metric_scale.json beside the
+    model). Needs keypoint VCs and the priors; otherwise the model keeps COLMAP's
+    arbitrary scale."""
     show_progress: bool = True
     """Log each registered image."""
 
@@ -95,6 +101,7 @@ class MappingSummary:
     unregistered: dict[str, str]  # image name -> why
     model_dir: Path | None
     elapsed_s: float
+    metric_scale: MetricScale | None = None  # None: the model's scale is arbitrary
 
     @property
     def num_registered(self) -> int:

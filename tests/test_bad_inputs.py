@@ -99,8 +99,10 @@ def _first_image_file(doc: dict) -> None:
 def _rematch(project: Path) -> None:
     """The user re-matches after augment: every pair row is rewritten."""
     conn = sqlite3.connect(project / "database.db")
-    conn.execute("UPDATE matches SET data = substr(data, 1, 8 * (rows - 1)), "
-                 "rows = rows - 1 WHERE rows > 1")
+    conn.execute(
+        "UPDATE matches SET data = substr(data, 1, 8 * (rows - 1)), "
+        "rows = rows - 1 WHERE rows > 1"
+    )
     conn.commit()
     conn.close()
 
@@ -108,8 +110,10 @@ def _rematch(project: Path) -> None:
 def _reextract(project: Path) -> None:
     """The user re-extracts one image's features after augment."""
     conn = sqlite3.connect(project / "database.db")
-    conn.execute("UPDATE keypoints SET data = zeroblob(length(data)) WHERE "
-                 "image_id = (SELECT MIN(image_id) FROM keypoints)")
+    conn.execute(
+        "UPDATE keypoints SET data = zeroblob(length(data)) WHERE "
+        "image_id = (SELECT MIN(image_id) FROM keypoints)"
+    )
     conn.commit()
     conn.close()
 
@@ -146,125 +150,325 @@ CASES = [
     Case("map without paths", lambda p: ["map", str(p / "database.db")], "", code=2),
     Case("bad enum", lambda p: [*_map(p), "--mapper", "magic"], "", code=2),
     # ------------------------------------------------------------ the database
-    Case("augment: no database", lambda p: ["augment", str(p / "nope.db"),
-         "--priors", str(p / "priors")], "database not found"),
-    Case("augment: database is a folder",
-         lambda p: ["augment", str(p / "images"), "--priors", str(p / "priors")],
-         "database not found"),
-    Case("augment: text file", _augment, "not a SQLite database",
-         setup=_write("database.db", "id,name\n1,cam00.jpg\n")),
-    Case("augment: empty file", _augment, "not a COLMAP database",
-         setup=_write("database.db", b"")),
-    Case("augment: SQLite but not COLMAP", _augment, "not a COLMAP database",
-         setup=lambda p: (
-             (p / "database.db").unlink(),
-             sqlite3.connect(p / "database.db").execute("CREATE TABLE t (x)").close(),
-         )),
-    Case("augment: truncated database", _augment, "database.db",
-         setup=_truncate),
+    Case(
+        "augment: no database",
+        lambda p: ["augment", str(p / "nope.db"), "--priors", str(p / "priors")],
+        "database not found",
+    ),
+    Case(
+        "augment: database is a folder",
+        lambda p: ["augment", str(p / "images"), "--priors", str(p / "priors")],
+        "database not found",
+    ),
+    Case(
+        "augment: text file",
+        _augment,
+        "not a SQLite database",
+        setup=_write("database.db", "id,name\n1,cam00.jpg\n"),
+    ),
+    Case(
+        "augment: empty file",
+        _augment,
+        "not a COLMAP database",
+        setup=_write("database.db", b""),
+    ),
+    Case(
+        "augment: SQLite but not COLMAP",
+        _augment,
+        "not a COLMAP database",
+        setup=lambda p: (
+            (p / "database.db").unlink(),
+            sqlite3.connect(p / "database.db").execute("CREATE TABLE t (x)").close(),
+        ),
+    ),
+    Case("augment: truncated database", _augment, "database.db", setup=_truncate),
     Case("augment: corrupt page", _augment, "damaged", setup=_corrupt_page),
-    Case("augment: no keypoints", _augment, "no keypoints",
-         setup=_sql("DELETE FROM keypoints")),
-    Case("augment: images table dropped", _augment, "not a COLMAP database",
-         setup=_sql("DROP TABLE images")),
-    Case("augment: a colmap-vc backup table dropped", _augment,
-         "colmap_vc_backup_features are missing", augmented=True,
-         setup=_sql("DROP TABLE colmap_vc_backup_features")),
-    Case("strip: a colmap-vc table dropped", _strip, "colmap_vc_images are missing",
-         augmented=True, setup=_sql("DROP TABLE colmap_vc_images")),
-    Case("augment: re-matched after augment", _augment, "strip --force",
-         augmented=True, setup=_rematch),
+    Case(
+        "augment: no keypoints",
+        _augment,
+        "no keypoints",
+        setup=_sql("DELETE FROM keypoints"),
+    ),
+    Case(
+        "augment: images table dropped",
+        _augment,
+        "not a COLMAP database",
+        setup=_sql("DROP TABLE images"),
+    ),
+    Case(
+        "augment: a colmap-vc backup table dropped",
+        _augment,
+        "colmap_vc_backup_features are missing",
+        augmented=True,
+        setup=_sql("DROP TABLE colmap_vc_backup_features"),
+    ),
+    Case(
+        "strip: a colmap-vc table dropped",
+        _strip,
+        "colmap_vc_images are missing",
+        augmented=True,
+        setup=_sql("DROP TABLE colmap_vc_images"),
+    ),
+    Case(
+        "augment: re-matched after augment",
+        _augment,
+        "strip --force",
+        augmented=True,
+        setup=_rematch,
+    ),
     # ------------------------------------------------------------ the priors
-    Case("augment: no priors", lambda p: [*_augment(p)[:2], "--priors",
-         str(p / "none")], "none"),
-    Case("augment: priors folder without priors.json", _augment, "priors.json",
-         setup=lambda p: (p / "priors" / "priors.json").unlink()),
-    Case("augment: priors.json not JSON", _augment, "priors.json",
-         setup=_write("priors/priors.json", "{not json")),
-    Case("augment: priors version", _augment, "version",
-         setup=_priors_json(lambda d: d.update(version=99))),
-    Case("augment: priors array file missing", _augment, "missing.npz",
-         setup=_priors_json(_first_image_file)),
-    Case("augment: priors image not in database", _augment, "not in the database",
-         setup=_priors_json(lambda d: d["images"].update(
-             {"ghost.jpg": next(iter(d["images"].values()))}))),
-    Case("augment: image path nowhere", lambda p: [*_augment(p), "--image-path",
-         str(p / "nowhere")], "image folder not found"),
-    Case("augment: static-cameras bad regex", lambda p: [*_augment(p),
-         "--static-cameras", "(cam"], "static"),
-    Case("augment: static-cameras without group", lambda p: [*_augment(p),
-         "--static-cameras", "cam"], "group"),
-    Case("augment: static-cameras matches nothing", lambda p: [*_augment(p),
-         "--static-cameras", "(xyz)"], "static"),
+    Case(
+        "augment: no priors",
+        lambda p: [*_augment(p)[:2], "--priors", str(p / "none")],
+        "none",
+    ),
+    Case(
+        "augment: priors folder without priors.json",
+        _augment,
+        "priors.json",
+        setup=lambda p: (p / "priors" / "priors.json").unlink(),
+    ),
+    Case(
+        "augment: priors.json not JSON",
+        _augment,
+        "priors.json",
+        setup=_write("priors/priors.json", "{not json"),
+    ),
+    Case(
+        "augment: priors version",
+        _augment,
+        "version",
+        setup=_priors_json(lambda d: d.update(version=99)),
+    ),
+    Case(
+        "augment: priors array file missing",
+        _augment,
+        "missing.npz",
+        setup=_priors_json(_first_image_file),
+    ),
+    Case(
+        "augment: priors image not in database",
+        _augment,
+        "not in the database",
+        setup=_priors_json(
+            lambda d: d["images"].update(
+                {"ghost.jpg": next(iter(d["images"].values()))}
+            )
+        ),
+    ),
+    Case(
+        "augment: image path nowhere",
+        lambda p: [*_augment(p), "--image-path", str(p / "nowhere")],
+        "image folder not found",
+    ),
+    Case(
+        "augment: static-cameras bad regex",
+        lambda p: [*_augment(p), "--static-cameras", "(cam"],
+        "static",
+    ),
+    Case(
+        "augment: static-cameras without group",
+        lambda p: [*_augment(p), "--static-cameras", "cam"],
+        "group",
+    ),
+    Case(
+        "augment: static-cameras matches nothing",
+        lambda p: [*_augment(p), "--static-cameras", "(xyz)"],
+        "static",
+    ),
     Case("augment: database locked", _augment, "locked"),  # see test below
     # ------------------------------------------------------------ map
-    Case("map: no database", lambda p: ["map", str(p / "nope.db"), "--image-path",
-         str(p / "images"), "--output-path", str(p / "sparse")], "not found"),
-    Case("map: no image folder", lambda p: ["map", str(p / "database.db"),
-         "--image-path", str(p / "nowhere"), "--output-path", str(p / "sparse")],
-         "image folder not found"),
-    Case("map: output is a file", _map, "is a file",
-         setup=_write("sparse", "not a folder")),
-    Case("map: output not empty", _map, "--overwrite",
-         setup=_write("sparse/notes.txt", "mine")),
-    Case("map: --overwrite a folder map did not write",
-         lambda p: [*_map(p), "--overwrite"], "not written by colmap-vc",
-         setup=_write("sparse/notes.txt", "mine")),
-    Case("map: --overwrite the project folder",
-         lambda p: [*_map(p)[:5], str(p), "--overwrite"], "holds the input"),
-    Case("map: --overwrite the image folder",
-         lambda p: [*_map(p)[:5], str(p / "images"), "--overwrite"],
-         "holds the input"),
-    Case("map: priors missing", lambda p: [*_map(p), "--priors", str(p / "none")],
-         "none"),
+    Case(
+        "map: no database",
+        lambda p: [
+            "map",
+            str(p / "nope.db"),
+            "--image-path",
+            str(p / "images"),
+            "--output-path",
+            str(p / "sparse"),
+        ],
+        "not found",
+    ),
+    Case(
+        "map: no image folder",
+        lambda p: [
+            "map",
+            str(p / "database.db"),
+            "--image-path",
+            str(p / "nowhere"),
+            "--output-path",
+            str(p / "sparse"),
+        ],
+        "image folder not found",
+    ),
+    Case(
+        "map: output is a file",
+        _map,
+        "is a file",
+        setup=_write("sparse", "not a folder"),
+    ),
+    Case(
+        "map: output not empty",
+        _map,
+        "--overwrite",
+        setup=_write("sparse/notes.txt", "mine"),
+    ),
+    Case(
+        "map: --overwrite a folder map did not write",
+        lambda p: [*_map(p), "--overwrite"],
+        "not written by colmap-vc",
+        setup=_write("sparse/notes.txt", "mine"),
+    ),
+    Case(
+        "map: --overwrite the project folder",
+        lambda p: [*_map(p)[:5], str(p), "--overwrite"],
+        "holds the input",
+    ),
+    Case(
+        "map: --overwrite the image folder",
+        lambda p: [*_map(p)[:5], str(p / "images"), "--overwrite"],
+        "holds the input",
+    ),
+    Case(
+        "map: priors missing", lambda p: [*_map(p), "--priors", str(p / "none")], "none"
+    ),
     # ------------------------------------------------------------ strip
     Case("strip: no database", lambda p: ["strip", str(p / "nope.db")], "not found"),
-    Case("strip: plain database", lambda p: ["strip", str(p / "database.db")],
-         "nothing to strip", code=0),
-    Case("strip: re-matched after augment", lambda p: ["strip",
-         str(p / "database.db")], "strip --force", augmented=True, setup=_rematch),
-    Case("strip: re-extracted after augment", lambda p: ["strip",
-         str(p / "database.db")], "keypoints of 1 image(s) changed", augmented=True,
-         setup=_reextract),
-    Case("strip: corrupt page", lambda p: ["strip", str(p / "database.db")],
-         "damaged", setup=_corrupt_page),
+    Case(
+        "strip: plain database",
+        lambda p: ["strip", str(p / "database.db")],
+        "nothing to strip",
+        code=0,
+    ),
+    Case(
+        "strip: re-matched after augment",
+        lambda p: ["strip", str(p / "database.db")],
+        "strip --force",
+        augmented=True,
+        setup=_rematch,
+    ),
+    Case(
+        "strip: re-extracted after augment",
+        lambda p: ["strip", str(p / "database.db")],
+        "keypoints of 1 image(s) changed",
+        augmented=True,
+        setup=_reextract,
+    ),
+    Case(
+        "strip: corrupt page",
+        lambda p: ["strip", str(p / "database.db")],
+        "damaged",
+        setup=_corrupt_page,
+    ),
     # ------------------------------------------------------------ eval, report
-    Case("eval: no model", lambda p: ["eval", str(p / "none"), str(p / "gt" /
-         "sparse")], "model folder not found"),
-    Case("eval: no model in folder", lambda p: ["eval", str(p / "images"),
-         str(p / "gt" / "sparse")], "no COLMAP model"),
-    Case("eval: output folder missing", lambda p: ["eval", str(p / "gt" / "sparse"),
-         str(p / "gt" / "sparse"), "--output", str(p / "no" / "m.json")],
-         "no/m.json"),
-    Case("eval: output is a folder", lambda p: ["eval", str(p / "gt" / "sparse"),
-         str(p / "gt" / "sparse"), "--output", str(p / "images")], "is a folder"),
-    Case("report: no database", lambda p: ["report", str(p / "nope.db"),
-         "--image-path", str(p / "images")], "not found"),
-    Case("report: model missing", lambda p: ["report", str(p / "database.db"),
-         "--image-path", str(p / "images"), "--model-path", str(p / "none"),
-         "--output", str(p / "r.html")], "none"),
+    Case(
+        "eval: no model",
+        lambda p: ["eval", str(p / "none"), str(p / "gt" / "sparse")],
+        "model folder not found",
+    ),
+    Case(
+        "eval: no model in folder",
+        lambda p: ["eval", str(p / "images"), str(p / "gt" / "sparse")],
+        "no COLMAP model",
+    ),
+    Case(
+        "eval: output folder missing",
+        lambda p: [
+            "eval",
+            str(p / "gt" / "sparse"),
+            str(p / "gt" / "sparse"),
+            "--output",
+            str(p / "no" / "m.json"),
+        ],
+        "no/m.json",
+    ),
+    Case(
+        "eval: output is a folder",
+        lambda p: [
+            "eval",
+            str(p / "gt" / "sparse"),
+            str(p / "gt" / "sparse"),
+            "--output",
+            str(p / "images"),
+        ],
+        "is a folder",
+    ),
+    Case(
+        "report: no database",
+        lambda p: ["report", str(p / "nope.db"), "--image-path", str(p / "images")],
+        "not found",
+    ),
+    Case(
+        "report: model missing",
+        lambda p: [
+            "report",
+            str(p / "database.db"),
+            "--image-path",
+            str(p / "images"),
+            "--model-path",
+            str(p / "none"),
+            "--output",
+            str(p / "r.html"),
+        ],
+        "none",
+    ),
     # ------------------------------------------------------------ priors, synth
-    Case("priors: no image folder", lambda p: ["priors", str(p / "nowhere"),
-         "--output", str(p / "p2")], "does not exist"),
-    Case("priors: empty folder", lambda p: ["priors", str(p / "empty"), "--output",
-         str(p / "p2")], "no images", setup=lambda p: (p / "empty").mkdir()),
-    Case("priors: only a 0-byte image", lambda p: ["priors", str(p / "zero"),
-         "--output", str(p / "p2")], "can be read", setup=_write("zero/a.jpg", b"")),
-    Case("priors: database missing", lambda p: ["priors", str(p / "images"),
-         "--output", str(p / "p2"), "--database", str(p / "nope.db")],
-         "does not exist"),
-    Case("synth: unknown preset", lambda p: ["synth", "cathedral", str(p / "s")],
-         "cathedral"),
-    Case("synth: into the project", lambda p: ["synth", "dome", str(p)],
-         "--overwrite"),
-    Case("synth: --overwrite the project", lambda p: ["synth", "dome", str(p),
-         "--overwrite"], "not written by colmap-vc synth"),
-    Case("demo: --overwrite the project", lambda p: ["demo", str(p), "--overwrite"],
-         "not written by colmap-vc demo"),
-    Case("frames: no video", lambda p: ["frames", str(p / "none.mp4"), "--output",
-         str(p / "f")], "none.mp4"),
-    Case("frames: not a video", lambda p: ["frames", str(p / "gt" / "persons.json"),
-         "--output", str(p / "f")], "persons.json"),
+    Case(
+        "priors: no image folder",
+        lambda p: ["priors", str(p / "nowhere"), "--output", str(p / "p2")],
+        "does not exist",
+    ),
+    Case(
+        "priors: empty folder",
+        lambda p: ["priors", str(p / "empty"), "--output", str(p / "p2")],
+        "no images",
+        setup=lambda p: (p / "empty").mkdir(),
+    ),
+    Case(
+        "priors: only a 0-byte image",
+        lambda p: ["priors", str(p / "zero"), "--output", str(p / "p2")],
+        "can be read",
+        setup=_write("zero/a.jpg", b""),
+    ),
+    Case(
+        "priors: database missing",
+        lambda p: [
+            "priors",
+            str(p / "images"),
+            "--output",
+            str(p / "p2"),
+            "--database",
+            str(p / "nope.db"),
+        ],
+        "does not exist",
+    ),
+    Case(
+        "synth: unknown preset",
+        lambda p: ["synth", "cathedral", str(p / "s")],
+        "cathedral",
+    ),
+    Case("synth: into the project", lambda p: ["synth", "dome", str(p)], "--overwrite"),
+    Case(
+        "synth: --overwrite the project",
+        lambda p: ["synth", "dome", str(p), "--overwrite"],
+        "not written by colmap-vc synth",
+    ),
+    Case(
+        "demo: --overwrite the project",
+        lambda p: ["demo", str(p), "--overwrite"],
+        "not written by colmap-vc demo",
+    ),
+    Case(
+        "frames: no video",
+        lambda p: ["frames", str(p / "none.mp4"), "--output", str(p / "f")],
+        "none.mp4",
+    ),
+    Case(
+        "frames: not a video",
+        lambda p: ["frames", str(p / "gt" / "persons.json"), "--output", str(p / "f")],
+        "persons.json",
+    ),
 ]
 
 
@@ -289,8 +493,9 @@ def projects(dome_scene: Path, tmp_path_factory: pytest.TempPathFactory) -> dict
         shutil.copytree(dome_scene / "images", project / "images")
         shutil.copytree(dome_scene / "priors", project / "priors")
         shutil.copytree(dome_scene / "gt" / "sparse", project / "gt" / "sparse")
-        shutil.copyfile(dome_scene / "gt" / "persons.json", project / "gt" /
-                        "persons.json")
+        shutil.copyfile(
+            dome_scene / "gt" / "persons.json", project / "gt" / "persons.json"
+        )
         if kind == "augmented":
             assert main(_augment(project)) == 0
         out[kind] = project
@@ -310,8 +515,9 @@ def _run(argv: list[str], capfd: pytest.CaptureFixture[str]) -> tuple[int, str]:
 
 
 @pytest.mark.parametrize("case", CASES, ids=[c.name for c in CASES])
-def test_bad_input(case: Case, projects: dict, tmp_path: Path, capfd,
-                   monkeypatch) -> None:
+def test_bad_input(
+    case: Case, projects: dict, tmp_path: Path, capfd, monkeypatch
+) -> None:
     project = _project(projects, case, tmp_path)
     case.setup(project)
     before = _snapshot(project)
@@ -363,9 +569,11 @@ def test_read_only_database_refused_before_the_work(
     monkeypatch.setattr(
         os,
         "access",
-        lambda path, mode, **kw: False
-        if Path(path) == db and mode == os.W_OK
-        else real_access(path, mode, **kw),
+        lambda path, mode, **kw: (
+            False
+            if Path(path) == db and mode == os.W_OK
+            else real_access(path, mode, **kw)
+        ),
     )
     before = _snapshot(project)
     start = time.perf_counter()
@@ -374,8 +582,9 @@ def test_read_only_database_refused_before_the_work(
     assert time.perf_counter() - start < 2.0  # no VC computed first
     # SQLite's read-only connection to a WAL database leaves its -wal/-shm side
     # files (it may not delete them); the database itself is byte-identical.
-    after = {k: v for k, v in _snapshot(project).items()
-             if not k.endswith(("-wal", "-shm"))}
+    after = {
+        k: v for k, v in _snapshot(project).items() if not k.endswith(("-wal", "-shm"))
+    }
     assert after == before
 
 
@@ -398,9 +607,21 @@ def test_map_and_report_never_write_the_database(
     code, output = _run(_map(project), capfd)
     assert code == 0, output
     report = tmp_path / "report.html"
-    assert main(["report", str(project / "database.db"), "--image-path",
-                 str(project / "images"), "--model-path", str(project / "sparse" / "0"),
-                 "--output", str(report)]) == 0
+    assert (
+        main(
+            [
+                "report",
+                str(project / "database.db"),
+                "--image-path",
+                str(project / "images"),
+                "--model-path",
+                str(project / "sparse" / "0"),
+                "--output",
+                str(report),
+            ]
+        )
+        == 0
+    )
     after = _snapshot(project)
     assert {k: after[k] for k in before} == before
     with sqlite3.connect(project / "database.db") as conn:

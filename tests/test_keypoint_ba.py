@@ -178,7 +178,10 @@ def test_camera_check_exchanges_left_and_right(dome_scene, rng):
         )
     keys = np.stack([np.zeros(len(points), np.int64), 2000 + np.arange(len(points))], 1)
     tracks = KeypointTracks(
-        track=tracks.track, image_id=tracks.image_id, point2D_idx=idx, xy_img=xy,
+        track=tracks.track,
+        image_id=tracks.image_id,
+        point2D_idx=idx,
+        xy_img=xy,
         keys=keys,
     )
     mirror = {2000 + k: 2000 + int(swap[k]) for k in range(len(points))}

@@ -9,7 +9,12 @@ import pycolmap
 import pytest
 
 from colmap_vc import augment, mapping
-from colmap_vc.evaluation import evaluate_poses, evaluate_reconstruction, poses_by_name
+from colmap_vc.evaluation import (
+    camera_distance_ratio,
+    evaluate_poses,
+    evaluate_reconstruction,
+    poses_by_name,
+)
 from colmap_vc.meshalign import mesh_alignment_poses
 from colmap_vc.priors import read_priors
 
@@ -39,6 +44,11 @@ def test_augmented_dome_registers_every_image_accurately(
     )
     assert metrics.auc["15"] > 90  # clean priors
     assert (summary.model_dir / "images.bin").exists()
+    # In metres, from the people (the synthetic world is metric).
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    ratio = camera_distance_ratio(poses_by_name(rec), poses_by_name(gt))
+    assert summary.metric_scale is not None and abs(ratio - 1.0) < 0.03, ratio
+    assert (summary.model_dir / "metric_scale.json").exists()
 
 
 def test_a_plain_database_maps_as_plain_colmap_and_says_why(dome_scene, tmp_path):

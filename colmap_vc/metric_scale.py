@@ -1,0 +1,138 @@
+"""Metric scale from the people: the model in metres.
+
+A structure-from-motion model has no scale; the people in it do. Every person prior
+places its keypoints in metres in its camera's frame (the fitted body has a human
+size), and the model triangulates the same keypoints (tracks by identity, as the
+keypoint bundle adjustment uses them) up to scale. The ratio of a keypoint's distance
+from the camera in the prior to its distance in the model is the scale; each
+(image, person) gives the median of its keypoints' ratios, and the model's scale is
+the median over them.
+
+What limits it is the body size a fit assumes from 2D evidence: a person fitted 5%
+too tall puts every one of their keypoints 5% too far in every view, so the error is
+shared by a person's views and averages out only over different people. The reported
+spread is that of the (image, person) ratios (a robust standard deviation, relative);
+``num_people`` says over how many identities it was taken.
+
+On pose2sim_single (one real person, four cameras, five instants) the camera
+distances come out 2.7% short of the calibration (docs/results.md).
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+from dataclasses import asdict, dataclass
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+
+from . import database
+from .keypoint_tracks import keypoint_tracks, person_identities, triangulate_tracks
+from .structs import ScenePriors
+
+logger = logging.getLogger(__name__)
+
+SCALE_FILE = "metric_scale.json"
+"""Written next to the model: the scale applied and its spread."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class MetricScale:
+    """The scale that takes a model to metres, and how well the people agree on it."""
+
+    scale: float  # metres per model unit (applied: the model is now in metres)
+    spread: float  # relative robust std of the per-(image, person) ratios
+    num_person_views: int  # (image, person) ratios the median is taken over
+    num_people: int  # distinct identities among them
+
+
+def estimate_metric_scale(
+    database_path: Path,
+    rec: pycolmap.Reconstruction,
+    priors: ScenePriors,
+    *,
+    min_track_length: int = 3,
+) -> MetricScale | None:
+    """Scale of ``rec`` in metres from its people's keypoints (module doc).
+
+    ``priors`` are keyed by the database's image names (for static cameras: the
+    merged priors of the representative images). Keypoint tracks seen by fewer than
+    ``min_track_length`` registered images are too poorly triangulated to use. None
+    when no keypoint of a prior person is triangulated.
+    """
+    database_path = Path(database_path)
+    views = database.read_views(database_path)
+    name_of = dict(zip(views.image_ids.tolist(), views.image_names, strict=True))
+    registered = np.array(
+        sorted(i for i, im in rec.images.items() if im.has_pose and i in name_of),
+        dtype=np.int64,
+    )
+    tracks = keypoint_tracks(database_path, registered)
+    run = database.read_run_info(database_path).get("options", {})
+    offset = int(run.get("matching", {}).get("num_samples", 0)) if run else 0
+    if tracks.num_tracks == 0 or tracks.keys is None or offset <= 0:
+        return None
+    X, counts = triangulate_tracks(rec, tracks)
+    identity = person_identities(database.read_person_associations(database_path))
+    person_of = {(i, ident): k for (i, k), ident in identity.items()}
+
+    good = (counts[tracks.track] >= min_track_length) & np.isfinite(
+        X[tracks.track]
+    ).all(axis=1)
+    ratios: dict[tuple[int, int], list[float]] = {}
+    for image_id in np.unique(tracks.image_id[good]):  # loop over images
+        sel = good & (tracks.image_id == image_id)
+        name = name_of[int(image_id)]
+        if name not in priors.images:
+            continue
+        T = rec.image(int(image_id)).cam_from_world().matrix()
+        d_model = np.linalg.norm(X[tracks.track[sel]] @ T[:, :3].T + T[:, 3], axis=1)
+        keys = tracks.keys[tracks.track[sel]]
+        persons = priors.images[name].persons
+        for ident in np.unique(keys[:, 0]):  # loop over the image's people
+            k = person_of.get((int(image_id), int(ident)))
+            if k is None or k >= len(persons):
+                continue
+            p = persons[k]
+            if p.keypoints_cam is None:
+                continue
+            rows = keys[:, 0] == ident
+            j = keys[rows, 1] - offset
+            inside = (j >= 0) & (j < len(p.keypoints_cam))
+            j, d = j[inside], d_model[rows][inside]
+            valid = (
+                p.keypoints_valid[j]
+                if p.keypoints_valid is not None
+                else np.ones(len(j), bool)
+            )
+            if not valid.any():
+                continue
+            d_prior = np.linalg.norm(p.keypoints_cam[j[valid]], axis=1)
+            ratios[(int(image_id), int(ident))] = [float(np.median(d_prior / d[valid]))]
+    if not ratios:
+        return None
+    values = np.array([v[0] for v in ratios.values()])
+    scale = float(np.median(values))
+    spread = float(1.4826 * np.median(np.abs(values / scale - 1.0)))
+    return MetricScale(
+        scale=scale,
+        spread=spread,
+        num_person_views=len(values),
+        num_people=len({ident for _, ident in ratios}),
+    )
+
+
+def apply_metric_scale_inplace(
+    rec: pycolmap.Reconstruction, estimate: MetricScale
+) -> None:
+    """Scale the model (cameras' positions and points) to metres."""
+    rec.transform(pycolmap.Sim3d(estimate.scale, pycolmap.Rotation3d(), np.zeros(3)))
+
+
+def write_metric_scale(model_dir: Path, estimate: MetricScale) -> Path:
+    """``metric_scale.json`` next to the model."""
+    path = Path(model_dir) / SCALE_FILE
+    path.write_text(json.dumps(asdict(estimate), indent=2) + "\n")
+    return path
