@@ -33,7 +33,8 @@ class FramesSummary:
     """What `colmap-vc frames` wrote."""
 
     output_dir: Path
-    instants: IndexArray  # (N,) frame index of the first video at each instant
+    instants: IndexArray  # (N,) frame index of the first video at each instant, in
+    # the order chosen (the first n: the n instants `--instants n` would choose)
     written: tuple[str, ...]  # image names
     static_cameras: str  # the expression that names the cameras
 
@@ -64,7 +65,8 @@ def _thumbnails(path: Path, step: int) -> tuple[FloatArray, int]:
 
 def farthest_instants(descriptors: FloatArray, num: int) -> IndexArray:
     """Indices of ``num`` rows chosen by farthest-point sampling (the first: the row
-    farthest from the mean), deterministic."""
+    farthest from the mean), deterministic, in the order chosen: the first ``n`` of
+    them are the ``n`` rows it would choose."""
     num = min(num, len(descriptors))
     d_mean = np.linalg.norm(descriptors - descriptors.mean(axis=0), axis=1)
     chosen = [int(np.argmax(d_mean))]
@@ -75,7 +77,7 @@ def farthest_instants(descriptors: FloatArray, num: int) -> IndexArray:
             break  # the rest repeat chosen instants exactly
         chosen.append(nxt)
         dist = np.minimum(dist, np.linalg.norm(descriptors - descriptors[nxt], axis=1))
-    return np.array(sorted(chosen), dtype=np.int64)
+    return np.array(chosen, dtype=np.int64)
 
 
 def extract_frames(
@@ -142,7 +144,7 @@ def extract_frames(
         len(chosen),
         len(videos),
         output_dir,
-        ", ".join(map(str, chosen.tolist())),
+        ", ".join(map(str, sorted(chosen.tolist()))),
     )
     return FramesSummary(
         output_dir=output_dir,

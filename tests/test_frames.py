@@ -28,8 +28,10 @@ def _video(path: Path, positions: list[int], offset: int, shade: int) -> None:
 
 def test_farthest_instants_skip_repeats() -> None:
     d = np.array([[0.0], [0.0], [0.0], [1.0], [1.0], [5.0]])
-    assert farthest_instants(d, 3).tolist() == [0, 3, 5]
-    assert farthest_instants(d, 10).tolist() == [0, 3, 5]  # the rest repeat
+    # The row farthest from the mean first, then the farthest from those chosen.
+    assert farthest_instants(d, 3).tolist() == [5, 0, 3]
+    assert farthest_instants(d, 10).tolist() == [5, 0, 3]  # the rest repeat
+    assert farthest_instants(d, 2).tolist() == [5, 0]  # a prefix of the longer run
 
 
 def test_frames_are_synchronized_and_diverse(tmp_path: Path) -> None:

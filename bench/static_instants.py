@@ -1,0 +1,211 @@
+"""More instants of static cameras: 1, 2, 5, 10, 20 instants from the pose2sim videos.
+
+The user's path for videos of static cameras (docs/real-data.md, "Static cameras"):
+`colmap-vc frames` on the four videos of Pose2Sim's Demo_SinglePerson (with their
+frame offsets), `colmap-vc priors`, then `augment` and `map` with
+``--static-cameras '(cam\\d+)_f'``, against the calibration of ../shared/data/
+pose2sim_single (the same cameras). The videos ship inside the `pose2sim` wheel on
+PyPI (version 0.10.49); the bench downloads that wheel once into bench/out/cache.
+
+The instants are chosen once, 20 of them, by `frames`' farthest-point sampling; its
+order is greedy, so its first N instants are the N it would choose, and each row uses
+them. Priors are computed once for the 80 frames (the estimator works per image).
+
+    .venv/bin/python bench/static_instants.py [--instants 1 2 5 10 20]
+
+Writes bench/out/static_instants.json and the "instants" section of docs/results.md.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import logging
+import shutil
+import subprocess
+import sys
+import time
+import zipfile
+from pathlib import Path
+
+import numpy as np
+from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
+from realdata import SHARED, _largest_model, load_calibration, make_database
+
+from colmap_vc import cli
+from colmap_vc.evaluation import (
+    THRESHOLDS_DEG,
+    camera_distance_ratio,
+    evaluate_poses,
+    pose_auc,
+)
+from colmap_vc.frames import extract_frames
+
+logger = logging.getLogger("bench.static_instants")
+
+WHEEL = "pose2sim-0.10.49-py3-none-any.whl"
+VIDEOS = "Pose2Sim/Demo_SinglePerson/videos"
+PATTERN = r"(cam\d+)_f"
+CACHE = OUT / "cache"
+
+
+def videos() -> list[Path]:
+    """The four videos of Demo_SinglePerson, from the cached pose2sim wheel."""
+    wheel = CACHE / WHEEL
+    if not wheel.exists():
+        CACHE.mkdir(parents=True, exist_ok=True)
+        logger.info("downloading %s once into %s", WHEEL, CACHE)
+        subprocess.run(
+            [
+                *(sys.executable, "-m", "pip", "download", "pose2sim==0.10.49"),
+                *("--no-deps", "--only-binary", ":all:", "-d", str(CACHE)),
+            ],
+            check=True,
+        )
+    out = CACHE / "Demo_SinglePerson"
+    paths = [out / f"cam0{k}.mp4" for k in range(1, 5)]
+    if not all(p.exists() for p in paths):
+        out.mkdir(parents=True, exist_ok=True)
+        with zipfile.ZipFile(wheel) as z:
+            for p in paths:
+                p.write_bytes(z.read(f"{VIDEOS}/{p.name}"))
+    return paths
+
+
+def subset_priors(priors: Path, names: list[str], out: Path) -> Path:
+    """A priors folder holding only ``names`` (the same per-image files)."""
+    spec = json.loads((priors / "priors.json").read_text())
+    spec["images"] = {n: spec["images"][n] for n in names}
+    if out.exists():
+        shutil.rmtree(out)
+    out.mkdir(parents=True)
+    for sub in ("images", "templates"):
+        (out / sub).symlink_to((priors / sub).resolve(), target_is_directory=True)
+    (out / "priors.json").write_text(json.dumps(spec))
+    return out
+
+
+def run(num: int, instants: list[int], work: Path, frames: Path, priors: Path) -> dict:
+    data = SHARED / "pose2sim_single"
+    calib, gt_shared = load_calibration(data)
+    cam_of = lambda name: name.split("_")[0]  # noqa: E731
+    cameras = {cam_of(n): c for n, c in calib.items()}
+    gt_cam = {cam_of(n): g for n, g in gt_shared.items()}
+    names = sorted(
+        f"{cam}_f{t:06d}.jpg" for cam in sorted(cameras) for t in instants[:num]
+    )
+    row = work / f"n{num:02d}"
+    if row.exists():
+        shutil.rmtree(row)  # the bench's own output
+    db = row / "database.db"
+    shutil.copytree(frames, row / "images", ignore=lambda d, fs: set(fs) - set(names))
+    make_database(row, names, {n: cameras[cam_of(n)] for n in names}, db)
+    sub = subset_priors(priors, names, row / "priors")
+    t0 = time.perf_counter()
+    args = ["--static-cameras", PATTERN, "--no-show-progress"]
+    code = cli.main(["augment", str(db), "--priors", str(sub), *args])
+    assert code == 0, f"augment failed ({code})"
+    sparse = row / "sparse"
+    code = cli.main(
+        [
+            *("map", str(db), "--image-path", str(row / "images")),
+            *("--output-path", str(sparse), *args),
+        ]
+    )
+    seconds = time.perf_counter() - t0
+    rec = _largest_model(sparse) if code == 0 else None
+    pred = {}
+    if rec is not None:
+        pred = {
+            cam_of(im.name): im.cam_from_world().matrix()
+            for im in rec.images.values()
+            if im.has_pose
+        }
+    metrics = evaluate_poses(pred, gt_cam)  # one pose per camera: 6 pairs
+    errors = np.array([p.error_deg for p in metrics.pairs])
+    aucs = pose_auc(errors, THRESHOLDS_DEG)
+    return {
+        "instants": instants[:num],
+        "images": len(names),
+        "registered": 0 if rec is None else int(rec.num_reg_images()),
+        "auc": {f"{t:g}": 100 * a for t, a in zip(THRESHOLDS_DEG, aucs, strict=True)},
+        "median_error_deg": float(np.median(errors)),
+        "rotation_deg": [round(p.rotation_deg, 2) for p in metrics.pairs],
+        "pairs": [round(float(e), 2) for e in errors],
+        "distance_ratio": camera_distance_ratio(pred, gt_cam),
+        "seconds_augment_map": seconds,
+    }
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--instants", nargs="+", type=int, default=[1, 2, 5, 10, 20])
+    args = parser.parse_args()
+    setup_logging()
+    work = OUT / "static_instants"
+    frames = work / "frames"
+    offsets = [
+        c["video_frame_offset"]
+        for c in json.loads((SHARED / "pose2sim_single" / "cameras.json").read_text())[
+            "cameras"
+        ]
+    ]
+    most = max(args.instants)
+    summary = extract_frames(videos(), frames, offsets=offsets, num_instants=most)
+    instants = [int(t) for t in summary.instants]  # farthest-point order
+    priors = work / "priors"
+    if not (priors / "priors.json").exists():
+        names = sorted(summary.written)
+        calib, _ = load_calibration(SHARED / "pose2sim_single")
+        cameras = {n.split("_")[0]: c for n, c in calib.items()}
+        db = work / "all.db"
+        (work / "_all").mkdir(exist_ok=True)
+        link = work / "_all" / "images"
+        if not link.exists():
+            link.symlink_to(frames.resolve(), target_is_directory=True)
+        make_database(
+            work / "_all", names, {n: cameras[n.split("_")[0]] for n in names}, db
+        )
+        code = cli.main(
+            [
+                *("priors", str(frames), "--output", str(priors)),
+                *("--database", str(db), "--no-progress"),
+            ]
+        )
+        assert code == 0, f"priors failed ({code})"
+    results = {n: run(n, instants, work, frames, priors) for n in args.instants}
+    write_json("static_instants.json", {"machine": machine(), "results": results})
+    lines = [
+        "| instants | images | registered | AUC@15 | AUC@30 | AUC@45 "
+        "| median pair error (deg) | pair errors (deg) "
+        "| camera distances / calibration |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for n, r in results.items():
+        a = r["auc"]
+        lines.append(
+            f"| {n} | {r['images']} | {r['registered']}/{r['images']} | {a['15']:.1f} "
+            f"| {a['30']:.1f} | {a['45']:.1f} | {r['median_error_deg']:.2f} "
+            f"| {' '.join(f'{e:.1f}' for e in sorted(r['pairs']))} "
+            f"| {r['distance_ratio']:.3f} |"
+        )
+    lines += [
+        "",
+        f"Measured at commit {machine()['commit']} by `.venv/bin/python "
+        f"bench/static_instants.py --instants {' '.join(map(str, args.instants))}`: "
+        "the four videos of Pose2Sim's Demo_SinglePerson (pose2sim 0.10.49 on PyPI, "
+        f"frame offsets {offsets} from ../shared/data/pose2sim_single/cameras.json), "
+        "`colmap-vc frames` (20 instants by farthest-point sampling; the first N "
+        "for N instants), `priors`, `augment` and `map` with `--static-cameras "
+        f"'{PATTERN}'`; the six camera pairs against the calibration.",
+    ]
+    replace_section(
+        DOCS / "results.md",
+        "instants",
+        "## Static cameras: more instants from the videos\n\n" + "\n".join(lines),
+    )
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
