@@ -18,7 +18,7 @@ from .evaluation import relative_pose, rotation_angle_deg
 from .keypoint_tracks import bundle_adjust_inplace
 from .mapping_options import Mapper, MappingOptions, incremental_options
 from .meshalign import mesh_alignment_poses
-from .structs import ScenePriors
+from .structs import FloatArray, ScenePriors
 
 logger = logging.getLogger(__name__)
 
@@ -117,11 +117,19 @@ def two_view_initialised(
     """
     views = database.read_views(database_path)
     geometries = database.read_two_view_geometries(database_path, include_vc=True)
-    posed = {p: row for p, row in geometries.items() if row.cam2_from_cam1 is not None}
-    if not posed:
+    usable = {p: row for p, row in geometries.items() if len(row.inlier_matches) >= 5}
+    if not usable:
         return None
-    (id1, id2), row = max(posed.items(), key=lambda kv: len(kv[1].inlier_matches))
+    (id1, id2), row = max(usable.items(), key=lambda kv: len(kv[1].inlier_matches))
+    kp1 = database.read_keypoints(database_path, int(id1), include_vc=True)
+    kp2 = database.read_keypoints(database_path, int(id2), include_vc=True)
+    cam1 = views.cameras[int(views.camera_ids[views.image_ids == id1][0])]
+    cam2 = views.cameras[int(views.camera_ids[views.image_ids == id2][0])]
     rel = row.cam2_from_cam1
+    if rel is None:  # COLMAP's matchers store E or F without the relative pose
+        rel = _pose_from_geometry(row, cam1, cam2, kp1, kp2)
+        if rel is None:
+            return None
     if priors is not None and options.mapper is Mapper.AUTO:
         names = {
             int(i): n for i, n in zip(views.image_ids, views.image_names, strict=True)
@@ -138,8 +146,6 @@ def two_view_initialised(
                 )
                 t = mesh_rel[:, 3] / max(np.linalg.norm(mesh_rel[:, 3]), 1e-12)
                 rel = np.c_[mesh_rel[:, :3], t]
-    kp1 = database.read_keypoints(database_path, int(id1), include_vc=True)
-    kp2 = database.read_keypoints(database_path, int(id2), include_vc=True)
     rec = pycolmap.Reconstruction()
     for camera in views.cameras.values():
         rec.add_camera_with_trivial_rig(camera)
@@ -159,8 +165,6 @@ def two_view_initialised(
         )
     # Midpoint triangulation of the inlier matches (vectorized), cheirality-checked.
     m = row.inlier_matches
-    cam1 = views.cameras[int(views.camera_ids[views.image_ids == id1][0])]
-    cam2 = views.cameras[int(views.camera_ids[views.image_ids == id2][0])]
     d1 = np.c_[cam1.cam_from_img(kp1[m[:, 0]]), np.ones(len(m))]
     d2 = (
         np.c_[cam2.cam_from_img(kp2[m[:, 1]]), np.ones(len(m))] @ rel[:, :3]
@@ -185,3 +189,26 @@ def two_view_initialised(
     output_dir.mkdir(parents=True, exist_ok=True)
     rec.write(output_dir)
     return rec
+
+
+def _pose_from_geometry(
+    row: database.TwoViewGeometryRow,
+    cam1: pycolmap.Camera,
+    cam2: pycolmap.Camera,
+    kp1: FloatArray,
+    kp2: FloatArray,
+) -> FloatArray | None:
+    """cam2_from_cam1 (3, 4) of a stored geometry without a pose (E, F or H and
+    its inliers, as COLMAP's matchers write them), by COLMAP's own decomposition
+    with the cheirality check; None when it finds none."""
+    geometry = pycolmap.TwoViewGeometry()
+    geometry.config = pycolmap.TwoViewGeometryConfiguration(int(row.config))
+    for name in ("E", "F", "H"):
+        value = getattr(row, name)
+        if value is not None:
+            setattr(geometry, name, value)
+    geometry.inlier_matches = row.inlier_matches.astype(np.uint32)
+    if not pycolmap.estimate_two_view_geometry_pose(cam1, kp1, cam2, kp2, geometry):
+        return None
+    pose = geometry.cam2_from_cam1
+    return None if pose is None else pose.matrix()

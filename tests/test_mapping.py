@@ -181,3 +181,41 @@ def test_overwrite_replaces_a_folder_map_wrote(dome_scene, augmented, tmp_path):
         augmented, dome_scene / "images", out, options, overwrite=True
     )
     assert summary.num_registered >= 5
+
+
+def test_a_two_view_geometry_stored_without_its_pose_gets_one() -> None:
+    """COLMAP's matchers store E (or F) and the inliers but no relative pose: a
+    two-image database whose one pair classic matching solved still maps."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from colmap_vc.database import TwoViewGeometryRow
+    from colmap_vc.evaluation import relative_pose_error
+    from colmap_vc.mapping_init import _pose_from_geometry
+
+    rng = np.random.default_rng(0)
+    camera = pycolmap.Camera(
+        model="SIMPLE_PINHOLE", width=640, height=480, params=[500.0, 320.0, 240.0]
+    )
+    X = rng.uniform([-2, -2, 5], [2, 2, 9], (200, 3))
+    R = Rotation.from_euler("y", 20, degrees=True).as_matrix()
+    t = np.array([-1.0, 0.1, 0.2])
+    kp1 = np.asarray(camera.img_from_cam(X))
+    kp2 = np.asarray(camera.img_from_cam(X @ R.T + t))
+    E = np.array([[0, -t[2], t[1]], [t[2], 0, -t[0]], [-t[1], t[0], 0]]) @ R
+    row = TwoViewGeometryRow(
+        image_id1=1,
+        image_id2=2,
+        inlier_matches=np.c_[np.arange(200), np.arange(200)],
+        config=int(pycolmap.TwoViewGeometryConfiguration.CALIBRATED),
+        F=None,
+        E=E,
+        H=None,
+        qvec_wxyz=np.zeros(4),  # as COLMAP 3.8 writes it: no pose
+        tvec=np.zeros(3),
+    )
+    assert row.cam2_from_cam1 is None
+    pose = _pose_from_geometry(row, camera, camera, kp1, kp2)
+    assert pose is not None
+    rot_err, t_err = relative_pose_error(pose, np.c_[R, t / np.linalg.norm(t)])
+    assert rot_err < 0.1 and t_err < 0.1
