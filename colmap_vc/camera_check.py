@@ -99,6 +99,24 @@ def robust_pnp(
     return float(np.median(residuals_px(camera, pose.matrix(), xy, pts))), pose
 
 
+def classic_support(
+    rec: pycolmap.Reconstruction, num_classic: dict[int, int]
+) -> dict[int, int]:
+    """Per registered image: how many model points it observes through classic
+    keypoints (the rows before the VCs)."""
+    out = {}
+    for image_id, image in rec.images.items():  # loop over images
+        if not image.has_pose:
+            continue
+        limit = num_classic.get(image_id, 0)
+        out[image_id] = sum(
+            1
+            for k, p in enumerate(image.points2D)  # loop over the classic keypoints
+            if k < limit and p.has_point3D()
+        )
+    return out
+
+
 def check_cameras_inplace(
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
@@ -120,8 +138,10 @@ def check_cameras_inplace(
     every left landmark right (pose2sim_single cam02 at t050 and t070). When that
     fits, the camera is re-posed, its keypoints join their counterparts' tracks and
     its surface VCs (from the mesh turned front to back) leave the model. Else the
-    camera is left out. Needs 4+ cameras (with 3, two cameras always agree with
-    each other). Cameras are visited in name order, worst first. Returns (re-posed
+    camera is left out. A camera that classic keypoints place
+    (``min_classic_support`` model points) is a witness, never judged: there the
+    people are what is wrong. Needs 4+ cameras (with 3, two cameras always agree
+    with each other). Cameras are visited in name order, worst first. Returns (re-posed
     names, left out: reason, re-posed with left/right exchanged).
     """
     relocalised: list[str] = []
@@ -149,11 +169,19 @@ def check_cameras_inplace(
         errs = {i: c[0] for i, c in checks.items() if np.isfinite(c[0])}
         if len(errs) < 4:
             break
+        pinned = {
+            i
+            for i, n in classic_support(rec, num_classic or {}).items()
+            if n >= options.min_classic_support
+        }
+        judged = [i for i in errs if i not in pinned]
+        if not judged:
+            break
         logger.debug(
             "camera check: %s",
             {rec.image(i).name: round(e, 1) for i, e in errs.items()},
         )
-        worst = max(errs, key=lambda i: (errs[i], rec.image(i).name))
+        worst = max(judged, key=lambda i: (errs[i], rec.image(i).name))
         typical = float(np.median([e for i, e in errs.items() if i != worst]))
         limit = max(options.max_check_ratio * typical, options.loss_scale_px)
         if errs[worst] <= limit:

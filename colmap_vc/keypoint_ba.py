@@ -75,6 +75,13 @@ class KeypointBaOptions:
     is turned front to back misses by about 3x (37-52 px)."""
     min_check_points: int = 10
     """Keypoint points a check needs (about half a person)."""
+    min_classic_support: int = 30
+    """A camera that observes this many model points through classic (SIFT)
+    keypoints is placed by them, whatever its people say: the camera check does
+    not move it or leave it out, and `map`'s mesh check does not judge it (its
+    prior may be the wrong one: turned front to back). 30 is what COLMAP's mapper
+    asks to register an image (abs_pose_min_num_inliers); spurious SIFT inliers
+    on extreme pairs number 15-25 (docs/results.md)."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)

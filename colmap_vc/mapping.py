@@ -18,6 +18,7 @@ from pathlib import Path
 import pycolmap
 
 from . import canonical, database, outputs
+from .camera_check import classic_support
 from .keypoint_ba import keypoint_bundle_adjustment
 from .keypoint_tracks import bundle_adjust_inplace
 from .mapping_init import mesh_initialised, two_view_initialised
@@ -269,12 +270,21 @@ def _map_copy(
         # On the final poses: the keypoint BA can carry a camera far from its start.
         # An image re-posed with left and right exchanged has a mesh turned front
         # to back: the meshes cannot judge it.
+        # An image that classic keypoints place is not judged by its people either.
+        num_classic = dict(
+            zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
+        )
+        pinned = {
+            best.image(i).name
+            for i, n in classic_support(best, num_classic).items()
+            if n >= options.keypoint_ba_options.min_classic_support
+        }
         left_out.update(
             leave_out_prior_outliers_inplace(
                 best,
                 priors,
                 options.max_image_prior_deviation_deg,
-                exempt=frozenset(mirrored),
+                exempt=frozenset(mirrored) | frozenset(pinned),
             )
         )
         if left_out:

@@ -150,6 +150,47 @@ def test_camera_check_re_poses_or_leaves_out_a_wrong_camera(dome_scene, rng, key
             assert np.abs(got[:, :3] @ truth[other][:, :3].T - np.eye(3)).max() < 0.02
 
 
+def test_camera_check_never_judges_a_camera_classic_matches_place(dome_scene, rng):
+    """A camera whose people fit nothing (a wrong prior) but that observes enough
+    model points through SIFT keypoints is where those put it: kept, not moved."""
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    points = rng.normal(0, 0.4, (30, 3)) * [1, 2, 1] + [0, -0.9, 0]
+    tracks = _tracks_from_points(rec, points, rng)
+    names = sorted(im.name for im in rec.images.values())
+    image = rec.find_image_with_name(names[1])
+    mine = tracks.image_id == image.image_id
+    tracks.xy_img[mine] = rng.permutation(tracks.xy_img[mine])  # its people: wrong
+    # 40 background points seen by it and its neighbour through classic keypoints.
+    other = rec.find_image_with_name(names[2])
+    background = rng.uniform(-1.5, 1.5, (40, 3)) + np.array([0.0, 0.0, 0.5])
+    for im in (image, other):
+        T = im.cam_from_world().matrix()
+        uv = rec.camera(im.camera_id).img_from_cam(background @ T[:, :3].T + T[:, 3])
+        im.points2D = pycolmap.Point2DList([pycolmap.Point2D(p) for p in uv])
+    for k, X in enumerate(background):
+        track = pycolmap.Track()
+        track.add_element(image.image_id, k)
+        track.add_element(other.image_id, k)
+        rec.add_point3D(X, track)
+    before = image.cam_from_world().matrix()
+    num_classic = {
+        i: (40 if i in (image.image_id, other.image_id) else 0) for i in rec.images
+    }
+    options = KeypointBaOptions(loss_scale_px=4.0)
+    relocalised, left_out, _ = check_cameras_inplace(
+        pycolmap.Reconstruction(rec),
+        tracks,
+        options,
+        num_classic=dict.fromkeys(rec.images, 0),
+    )
+    assert list(left_out) == [names[1]]  # without the SIFT points: left out
+    relocalised, left_out, _ = check_cameras_inplace(
+        rec, tracks, options, num_classic=num_classic
+    )
+    assert not relocalised and not left_out
+    assert np.allclose(rec.image(image.image_id).cam_from_world().matrix(), before)
+
+
 def test_camera_check_exchanges_left_and_right(dome_scene, rng):
     """A camera whose pose estimator labelled the person's left as right (seen from
     the back, taken for the front) sits on the mirror side: the check re-poses it
