@@ -19,6 +19,7 @@ from .keypoint_tracks import (
     bundle_adjust_inplace,
     delete_points_observing,
     keypoint_observations,
+    loss_scale_px,
     mirrored_tracks,
     relabelled,
     subset,
@@ -147,6 +148,7 @@ def check_cameras_inplace(
     relocalised: list[str] = []
     left_out: dict[str, str] = {}
     mirrored: list[str] = []
+    scale_px = loss_scale_px(rec, options.loss_scale_px, options.loss_scale_frac)
     partner = mirrored_tracks(tracks, mirror or {})
     while True:
         reg = sorted(
@@ -183,7 +185,7 @@ def check_cameras_inplace(
         )
         worst = max(judged, key=lambda i: (errs[i], rec.image(i).name))
         typical = float(np.median([e for i, e in errs.items() if i != worst]))
-        limit = max(options.max_check_ratio * typical, options.loss_scale_px)
+        limit = max(options.max_check_ratio * typical, scale_px)
         if errs[worst] <= limit:
             break
         image = rec.image(worst)
@@ -206,7 +208,7 @@ def check_cameras_inplace(
                 typical,
             )
             relocalised.append(name)
-            bundle_adjust_inplace(rec, options.loss_scale_px)
+            bundle_adjust_inplace(rec, scale_px)
             continue
         swapped = relabelled(tracks, worst, partner)
         check = best_two_view_check(
@@ -258,5 +260,5 @@ def check_cameras_inplace(
             )
             logger.warning("camera check: %s %s", name, left_out[name])
             rec.deregister_frame(image.frame_id)
-        bundle_adjust_inplace(rec, options.loss_scale_px)
+        bundle_adjust_inplace(rec, scale_px)
     return relocalised, left_out, mirrored

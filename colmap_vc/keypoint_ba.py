@@ -18,6 +18,7 @@ model, from the keypoint-only model and from the ground truth.
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import time
 from dataclasses import dataclass
@@ -34,6 +35,7 @@ from .keypoint_tracks import (
     delete_points_observing,
     keypoint_observations,
     keypoint_tracks,
+    loss_scale_px,
 )
 
 logger = logging.getLogger(__name__)
@@ -43,9 +45,16 @@ logger = logging.getLogger(__name__)
 class KeypointBaOptions:
     """Options of the keypoint bundle adjustment."""
 
-    loss_scale_px: float = 16.0
-    """Scale of the Cauchy loss, pixels (about the landmarks' error: MediaPipe's is
-    10-15 px median on 1920-px frames)."""
+    loss_scale_px: float | None = None
+    """Scale of the Cauchy loss, pixels; also the smallest error the camera check
+    calls a contradiction. Default: ``loss_scale_frac`` of the images' larger side."""
+    loss_scale_frac: float = 16.0 / 1920.0
+    """The keypoints' pixel error as a fraction of the image's larger side, when
+    ``loss_scale_px`` is not given: MediaPipe's landmarks are 10-15 px off (median) on
+    pose2sim's 1920-px frames, 16 px; a landmark's error follows the person's size in
+    pixels, so the same people in a 640-px image are about 5 px off (the synthetic
+    realistic priors: 3-4 px median; a fixed 16 px let a camera turned 180 deg pass
+    the camera check there at 15.8 px, against 3.8 px for the median camera)."""
     surface_per_image: float = 6.0
     """Surface-VC observations kept per registered image (an even random subset of the
     model's VC-only points; negative: keep them all). A fixed budget, not one that
@@ -98,6 +107,15 @@ class KeypointBaSummary:
     mirrored: tuple[str, ...] = ()  # re-posed with their people's left/right swapped
 
 
+def with_loss_scale(
+    options: KeypointBaOptions, rec: pycolmap.Reconstruction
+) -> KeypointBaOptions:
+    """``options`` with ``loss_scale_px`` set: given, else ``loss_scale_frac`` of the
+    median larger image side of the model's cameras."""
+    scale = loss_scale_px(rec, options.loss_scale_px, options.loss_scale_frac)
+    return dataclasses.replace(options, loss_scale_px=scale)
+
+
 def keypoint_bundle_adjustment(
     database_path: Path,
     rec: pycolmap.Reconstruction,
@@ -111,7 +129,7 @@ def keypoint_bundle_adjustment(
     ``mirror`` (template track id -> its left/right counterpart's) lets the camera
     check try an image's people with left and right exchanged.
     """
-    options = options or KeypointBaOptions()
+    options = with_loss_scale(options or KeypointBaOptions(), rec)
     t0 = time.perf_counter()
     out = pycolmap.Reconstruction(rec)
     registered = np.array(

@@ -200,6 +200,17 @@ def triangulate_tracks(
     return X[:, :3], counts
 
 
+def loss_scale_px(
+    rec: pycolmap.Reconstruction, scale_px: float | None, frac: float
+) -> float:
+    """``scale_px`` when given, else ``frac`` of the median larger image side of the
+    model's cameras (the keypoints' error follows the image's resolution)."""
+    if scale_px is not None:
+        return float(scale_px)
+    sides = [max(c.width, c.height) for c in rec.cameras.values()] or [1920]
+    return frac * float(np.median(sides))
+
+
 def bundle_adjust_inplace(rec: pycolmap.Reconstruction, loss_scale_px: float) -> None:
     """COLMAP's bundle adjustment (intrinsics fixed, Cauchy loss), in place."""
     ba = pycolmap.BundleAdjustmentOptions(

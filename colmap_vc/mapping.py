@@ -19,7 +19,7 @@ import pycolmap
 
 from . import canonical, database, outputs
 from .camera_check import classic_support
-from .keypoint_ba import keypoint_bundle_adjustment
+from .keypoint_ba import keypoint_bundle_adjustment, with_loss_scale
 from .keypoint_tracks import bundle_adjust_inplace
 from .mapping_init import mesh_initialised, two_view_initialised
 from .mapping_options import (
@@ -288,7 +288,8 @@ def _map_copy(
             )
         )
         if left_out:
-            bundle_adjust_inplace(best, options.keypoint_ba_options.loss_scale_px)
+            kba_options = with_loss_scale(options.keypoint_ba_options, best)
+            bundle_adjust_inplace(best, kba_options.loss_scale_px)
     scale = None
     if best is not None and priors is not None and options.metric_scale:
         scale = estimate_metric_scale(database_path, best, priors)

@@ -271,3 +271,25 @@ def test_anny_keypoint_mirror_exchanges_named_pairs():
     other = dataclasses.replace(base, template="smpl", keypoints_xy=np.zeros((17, 2)))
     person = dataclasses.replace(base, keypoints_xy=np.zeros((17, 2)))
     assert anny_keypoint_mirror([person, other]) is None
+
+
+def test_the_keypoint_noise_scale_follows_the_image_resolution():
+    """16 px on pose2sim's 1920-px frames; the same people in a 640-px image are
+    about 5 px off, and a number given wins."""
+    from colmap_vc.keypoint_tracks import loss_scale_px
+
+    rec = pycolmap.Reconstruction()
+    for width, height in ((640, 480), (640, 480), (1920, 1080)):
+        rec.add_camera_with_trivial_rig(
+            pycolmap.Camera(
+                model="SIMPLE_PINHOLE",
+                width=width,
+                height=height,
+                params=[500.0, width / 2, height / 2],
+                camera_id=len(rec.cameras) + 1,
+            )
+        )
+    frac = KeypointBaOptions().loss_scale_frac
+    assert loss_scale_px(rec, None, frac) == pytest.approx(16.0 / 3.0)
+    assert loss_scale_px(rec, 9.0, frac) == 9.0
+    assert loss_scale_px(pycolmap.Reconstruction(), None, frac) == pytest.approx(16.0)
