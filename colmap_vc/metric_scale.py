@@ -59,8 +59,8 @@ def estimate_metric_scale(
 
     ``priors`` are keyed by the database's image names (for static cameras: the
     merged priors of the representative images). Keypoint tracks seen by fewer than
-    ``min_track_length`` registered images are too poorly triangulated to use. None
-    when no keypoint of a prior person is triangulated.
+    ``min_track_length`` registered images (2 in a two-image model) are too poorly
+    triangulated to use. None when no keypoint of a prior person is triangulated.
     """
     database_path = Path(database_path)
     views = database.read_views(database_path)
@@ -74,6 +74,7 @@ def estimate_metric_scale(
     offset = int(run.get("matching", {}).get("num_samples", 0)) if run else 0
     if tracks.num_tracks == 0 or tracks.keys is None or offset <= 0:
         return None
+    min_track_length = min(min_track_length, max(len(registered), 2))
     X, counts = triangulate_tracks(rec, tracks)
     identity = person_identities(database.read_person_associations(database_path))
     person_of = {(i, ident): k for (i, k), ident in identity.items()}

@@ -1,0 +1,100 @@
+"""Metric scale: how far `map`'s models in metres are from the ground truth's size.
+
+Reads the models `bench/accuracy.py` left (the default `map`, "VC + keypoint BA",
+under bench/out/runs/accuracy) and the static-camera models of
+`bench/static_cameras.py`, and compares camera distances with the ground truth:
+the median over camera pairs of model distance / true distance (1 = right size).
+
+    .venv/bin/python bench/metric_scale.py   # after bench/accuracy.py
+
+Writes bench/out/metric_scale.json and the "scale" section of docs/results.md.
+"""
+
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pycolmap
+from common import DOCS, OUT, machine, replace_section, write_json
+
+from colmap_vc.evaluation import camera_distance_ratio, poses_by_name
+
+ARM = "VC_p_keypoint_BA"
+
+
+def _largest(sparse: Path) -> tuple[pycolmap.Reconstruction, Path] | None:
+    best = None
+    for d in sorted(sparse.rglob("images.bin")):
+        rec = pycolmap.Reconstruction(d.parent)
+        if best is None or rec.num_reg_images() > best[0].num_reg_images():
+            best = (rec, d.parent)
+    return best
+
+
+def main() -> None:
+    rows: dict[str, dict[str, list[dict]]] = {}
+    for run in sorted((OUT / "runs" / "accuracy").glob("acc_*")):
+        scene = OUT / "scenes" / run.name
+        if not (scene / "gt" / "sparse").is_dir():
+            continue
+        gt = poses_by_name(pycolmap.Reconstruction(scene / "gt" / "sparse"))
+        group = "dome" if "_dome_" in run.name else run.name.split("_")[1]
+        people = run.name.split("_")[2][1:]
+        for level_dir in sorted(p for p in run.iterdir() if p.is_dir()):
+            found = _largest(level_dir / ARM / "sparse")
+            if found is None:
+                continue
+            rec, folder = found
+            scale_file = folder / "metric_scale.json"
+            info = json.loads(scale_file.read_text()) if scale_file.exists() else {}
+            ratio = camera_distance_ratio(poses_by_name(rec), gt)
+            key = f"{group}, {people} {'person' if people == '1' else 'people'}"
+            rows.setdefault(key, {}).setdefault(level_dir.name, []).append(
+                {"scene": run.name, "ratio": ratio, **info}
+            )
+    static = OUT / "static_cameras.json"
+    real = {}
+    if static.exists():
+        for ds, r in json.loads(static.read_text())["results"].items():
+            if "distance_ratio" in r:
+                real[f"pose2sim_{ds}, static cameras (20 images)"] = r["distance_ratio"]
+    write_json(
+        "metric_scale.json", {"machine": machine(), "synthetic": rows, "real": real}
+    )
+    lines = [
+        "| scenes | priors | models | median ratio | ratios (one per scene) "
+        "| scaled models |",
+        "|---|---|---|---|---|---|",
+    ]
+    for key, levels in rows.items():
+        for level, items in levels.items():
+            ratios = [it["ratio"] for it in items if np.isfinite(it["ratio"])]
+            scaled = f"{sum('scale' in it for it in items)}/{len(items)}"
+            median = f"{np.median(ratios):.3f}" if ratios else "-"
+            listed = " ".join(f"{r:.3f}" for r in ratios) or "-"
+            lines.append(
+                f"| {key} | {level} | {len(items)} | {median} | {listed} | {scaled} |"
+            )
+    for name, ratio in real.items():
+        lines.append(f"| {name} | real photos | 1 | {ratio:.3f} | {ratio:.3f} | 1/1 |")
+    lines += [
+        "",
+        f"Measured at commit {machine()['commit']} by `.venv/bin/python "
+        "bench/metric_scale.py` on the models of `bench/accuracy.py` (the default "
+        "`map`) and `bench/static_cameras.py`: per model the median over camera pairs "
+        "of the model's distance between two cameras over the true one (1: metres "
+        "exactly). *scaled models*: those `map` could scale (it needs triangulated "
+        "keypoints of people with priors).",
+    ]
+    replace_section(
+        DOCS / "results.md",
+        "scale",
+        "## Metric scale from the people\n\n" + "\n".join(lines),
+    )
+    print("\n".join(lines))
+
+
+if __name__ == "__main__":
+    main()
