@@ -8,7 +8,6 @@ result in one transaction (or only reports, with ``dry_run``).
 from __future__ import annotations
 
 import dataclasses
-import itertools
 import logging
 import time
 from collections.abc import Mapping
@@ -21,11 +20,13 @@ from tqdm import tqdm
 
 from . import __version__, database
 from .association import AssociationOptions, LinkEvidence, PersonCue, associate
+from .executor import ExecutorKind, ExecutorOptions, open_executor
 from .matching import (
     MatchingOptions,
     PersonMatches,
     PersonObservations,
 )
+from .pair_selection import select_pairs
 from .priors import read_priors
 from .static_cameras import merge_priors, parse_static_cameras
 from .structs import (
@@ -38,21 +39,23 @@ from .structs import (
     VcKeypoints,
 )
 from .vc_pairs import (
+    PairContext,
+    VerifyTask,
     concat_matches,
     gather,
     initial_thickness,
-    link_evidence,
+    link_pairs,
     observation_codes,
     observe_image,
     person_cues,
     template_samples,
+    verify_tasks,
 )
 from .verification import (
     Verification,
     VerificationOptions,
     cycle_inconsistent_pairs,
     inverted,
-    verify_pair_with_classic,
 )
 
 logger = logging.getLogger(__name__)
@@ -85,6 +88,12 @@ class AugmentOptions:
     """Classic matches join a pair's verification only when their own relative pose
     agrees with the VCs' within this (else a few spurious SIFT inliers could steer
     the pair): the VC pose noise (association.pose_sigma_deg)."""
+    max_partners: int | None = 15
+    """Past this many images plus one, each image gets VCs with this many partners
+    only (smallest view angle the meshes predict, plus what connects the view
+    graph): time grows with the images, not the pairs. 15 keeps every pair of a
+    16-view scene, the size every accuracy benchmark measures; bench/scale.py
+    measures the cost against all pairs. None: every pair."""
     max_cycle_error_deg: float = 35.0
     """A verified pair whose rotation breaks most of the view triplets it closes by
     more than this is dropped (sqrt(3) x the one-pair pose noise of 20 deg)."""
@@ -93,6 +102,14 @@ class AugmentOptions:
     group, searched in the image name, names the physical camera (e.g.
     '(cam\\d+)_'); each camera then has one pose constrained by every instant, and
     people of different instants never match (docs/real-data.md)."""
+    executor: ExecutorKind = ExecutorKind.AUTO
+    """Where the per-pair stages run: auto (local processes for a few hundred pairs
+    or more), serial, processes, or dask (a dask.distributed cluster, --scheduler;
+    docs/scaling.md). Every executor writes the same database."""
+    workers: int | None = None
+    """Local worker processes (default: the machine's cores)."""
+    scheduler: str | None = None
+    """Address of a dask.distributed scheduler, with --executor dask."""
     dry_run: bool = False
     """Compute and report, write nothing."""
     show_progress: bool = True
@@ -234,73 +251,98 @@ def compute_virtual_correspondences(
     t0 = time.perf_counter()
     name_pairs = [
         (n1, n2)
-        for n1, n2 in itertools.combinations(names, 2)
+        for n1, n2 in select_pairs(
+            priors.images,
+            names,
+            options.max_partners,
+            # Two meshes' orientation errors, each at the VC pose noise.
+            max_disagreement_deg=2 * options.association.pose_sigma_deg,
+        )
         if not (solved_pairs and pair_ids(n1, n2) in solved_pairs)
     ]
     cache: dict[tuple[str, str, int, int], PersonMatches] = {}
     links: list[LinkEvidence] = []
-    for n1, n2 in tqdm(
-        name_pairs, desc="person links", disable=not options.show_progress, leave=False
-    ):
-        links += link_evidence(
-            n1,
-            n2,
-            observations[n1],
-            observations[n2],
-            camera_of(n1),
-            camera_of(n2),
-            cache,
-            options,
+    cameras = {n: camera_of(n) for n in names}
+    executor_options = ExecutorOptions(
+        executor=options.executor,
+        workers=options.workers,
+        scheduler=options.scheduler,
+    )
+    with open_executor(
+        executor_options, len(name_pairs), options.show_progress
+    ) as executor:
+        linked = executor.map(
+            link_pairs,
+            PairContext(observations=observations, cameras=cameras, options=options),
+            name_pairs,
+            "person links",
         )
-    association = associate(cues, links, options.association)
-    timings["associate"] = time.perf_counter() - t0
+        for (n1, n2), (pair_links_, matches) in zip(name_pairs, linked, strict=True):
+            links += pair_links_
+            cache.update({(n1, n2, a, b): m for (a, b), m in matches.items()})
+        timings["link"] = time.perf_counter() - t0
+        association = associate(cues, links, options.association)
+        timings["associate"] = time.perf_counter() - t0
 
-    t0 = time.perf_counter()
+        t0 = time.perf_counter()
+        tasks: list[VerifyTask] = []
+        stored_order: list[tuple[IndexArray, int]] = []
+        cats: list[tuple[IndexArray, ...]] = []
+        for n1, n2 in sorted(association.links):
+            pair_links = association.links[(n1, n2)]
+            cat = concat_matches([(a, b, cache[(n1, n2, a, b)]) for a, b in pair_links])
+            if len(cat[0]) < options.min_num_vcs:
+                continue
+            id1, id2 = pair_ids(n1, n2)
+            cm = (
+                classic_matches.get((id1, id2), np.zeros((0, 2), np.int64))
+                if options.use_classic_matches
+                else np.zeros((0, 2), np.int64)
+            )
+            if id1 != id_of(n1):
+                cm = cm[:, ::-1]  # classic matches are stored in id order
+            # RANSAC sees them in a canonical order (image-name order, then
+            # keypoints), whatever the ids; the inlier mask goes back to the stored
+            # order below.
+            canonical = np.lexsort((cm[:, 1], cm[:, 0]))
+            cm = cm[canonical]
+            tasks.append(
+                VerifyTask(
+                    image_name1=n1,
+                    image_name2=n2,
+                    vc_xy1=gather(observations[n1], cat[0], cat[1], "xy_img"),
+                    vc_xy2=gather(observations[n2], cat[2], cat[3], "xy_img"),
+                    classic_xy1=classic_keypoints[id_of(n1)][cm[:, 0]]
+                    if len(cm)
+                    else None,
+                    classic_xy2=classic_keypoints[id_of(n2)][cm[:, 1]]
+                    if len(cm)
+                    else None,
+                )
+            )
+            stored_order.append((canonical, len(cm)))
+            cats.append(cat)
+        results = executor.map(
+            verify_tasks,
+            PairContext(observations={}, cameras=cameras, options=options),
+            tasks,
+            "verify",
+        )
     verified: dict[tuple[str, str], tuple[Verification, tuple[IndexArray, ...], int]]
     verified = {}
     failed: dict[tuple[str, str], tuple[tuple[IndexArray, ...], str]] = {}
-    for n1, n2 in tqdm(
-        sorted(association.links),
-        desc="verify",
-        disable=not options.show_progress,
-        leave=False,
+    for task, result, (canonical, num_cm), cat in zip(
+        tasks, results, stored_order, cats, strict=True
     ):
-        pair_links = association.links[(n1, n2)]
-        cat = concat_matches([(a, b, cache[(n1, n2, a, b)]) for a, b in pair_links])
-        if len(cat[0]) < options.min_num_vcs:
-            continue
-        id1, id2 = pair_ids(n1, n2)
-        cm = (
-            classic_matches.get((id1, id2), np.zeros((0, 2), np.int64))
-            if options.use_classic_matches
-            else np.zeros((0, 2), np.int64)
-        )
-        if id1 != id_of(n1):
-            cm = cm[:, ::-1]  # classic matches are stored in id order
-        # RANSAC sees them in a canonical order (image-name order, then keypoints),
-        # whatever the ids; the inlier mask goes back to the stored order below.
-        canonical = np.lexsort((cm[:, 1], cm[:, 0]))
-        cm = cm[canonical]
-        cxy1 = classic_keypoints[id_of(n1)][cm[:, 0]] if len(cm) else None
-        cxy2 = classic_keypoints[id_of(n2)][cm[:, 1]] if len(cm) else None
-        result = verify_pair_with_classic(
-            camera_of(n1),
-            camera_of(n2),
-            gather(observations[n1], cat[0], cat[1], "xy_img"),
-            gather(observations[n2], cat[2], cat[3], "xy_img"),
-            cxy1,
-            cxy2,
-            options.verification,
-            options.max_classic_disagreement_deg,
-        )
-        if len(cm):
-            stored = np.zeros(len(cm), dtype=bool)
+        n1, n2 = task.image_name1, task.image_name2
+        if num_cm:
+            stored = np.zeros(num_cm, dtype=bool)
             stored[canonical] = result.classic_is_inlier
             result = dataclasses.replace(result, classic_is_inlier=stored)
         if result.geometry is None:
             failed[(n1, n2)] = (cat, "the associated people's VCs do not verify")
             continue
-        verified[(n1, n2)] = (result, cat, len(cm))
+        verified[(n1, n2)] = (result, cat, num_cm)
     dropped = cycle_inconsistent_pairs(
         {p: v[0].geometry.cam2_from_cam1[:, :3] for p, v in verified.items()},  # type: ignore[union-attr]
         options.max_cycle_error_deg,

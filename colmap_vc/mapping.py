@@ -181,6 +181,8 @@ def _map_copy(
     pycolmap.set_random_seed(options.seed)
     t0 = time.perf_counter()
     priors = load_priors(database_path, priors_path, views.image_names, static)
+    timings = {"read": time.perf_counter() - t0}
+    lap = time.perf_counter()
     if len(mapped) == 2 and options.mapper in (Mapper.AUTO, Mapper.INCREMENTAL):
         rec = two_view_initialised(
             database_path, image_dir, output_dir / "0", options, priors
@@ -221,6 +223,8 @@ def _map_copy(
         )
     best_key = max(models, key=lambda k: models[k].num_reg_images(), default=None)
     best = None if best_key is None else models[best_key]
+    timings["mapper"] = time.perf_counter() - lap
+    lap = time.perf_counter()
     if options.mapper is Mapper.AUTO and priors is not None and len(mapped) > 2:
         deviation = 180.0 if best is None else prior_deviation_deg(best, priors)
         placeable = len(
@@ -254,6 +258,8 @@ def _map_copy(
                 "the incremental model agrees with the mesh prior (median %.0f deg)",
                 deviation,
             )
+    timings["mesh_fallback"] = time.perf_counter() - lap
+    lap = time.perf_counter()
     left_out: dict[str, str] = {}
     mirrored: tuple[str, ...] = ()
     if best is not None and options.keypoint_ba:
@@ -266,6 +272,8 @@ def _map_copy(
         models[best_key] = best
         left_out.update(kba.left_out or {})
         mirrored = kba.mirrored
+    timings["keypoint_ba"] = time.perf_counter() - lap
+    lap = time.perf_counter()
     if best is not None and priors is not None:
         # On the final poses: the keypoint BA can carry a camera far from its start.
         # An image re-posed with left and right exchanged has a mesh turned front
@@ -290,6 +298,8 @@ def _map_copy(
         if left_out:
             kba_options = with_loss_scale(options.keypoint_ba_options, best)
             bundle_adjust_inplace(best, kba_options.loss_scale_px)
+    timings["checks"] = time.perf_counter() - lap
+    lap = time.perf_counter()
     scale = None
     if best is not None and priors is not None and options.metric_scale:
         scale = estimate_metric_scale(database_path, best, priors)
@@ -313,6 +323,7 @@ def _map_copy(
         best.write(output_dir / str(best_key))
     if best is not None and scale is not None:
         write_metric_scale(output_dir / str(best_key), scale)
+    timings["scale_write"] = time.perf_counter() - lap
     elapsed = time.perf_counter() - t0
     reasons = {**_why_unregistered(database_path, best), **left_out}
     if best is None:
@@ -326,6 +337,7 @@ def _map_copy(
         model_dir=output_dir / str(best_key),
         elapsed_s=elapsed,
         metric_scale=scale,
+        timings_s=timings,
     )
     return best, summary
 

@@ -102,6 +102,7 @@ class MappingSummary:
     model_dir: Path | None
     elapsed_s: float
     metric_scale: MetricScale | None = None  # None: the model's scale is arbitrary
+    timings_s: dict[str, float] = field(default_factory=dict)  # seconds per stage
 
     @property
     def num_registered(self) -> int:

@@ -29,7 +29,7 @@ from .matching import (
     template_key,
 )
 from .structs import FloatArray, ImagePrior, IndexArray, PairGeometry, ScenePriors
-from .verification import verify_pair
+from .verification import Verification, verify_pair, verify_pair_with_classic
 
 if TYPE_CHECKING:
     from .augment import AugmentOptions
@@ -219,4 +219,64 @@ def person_cues(
             group=groups[k] if groups else "",
         )
         for k, p in enumerate(prior.persons)
+    ]
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True, slots=True)
+class PairContext:
+    """What every per-pair task needs, shipped once per worker (colmap_vc.executor)."""
+
+    observations: Mapping[str, list[PersonObservations]]
+    cameras: Mapping[str, pycolmap.Camera]
+    options: AugmentOptions
+
+
+LinkResult = tuple[list[LinkEvidence], dict[tuple[int, int], PersonMatches]]
+
+
+def link_pairs(ctx: PairContext, pairs: Sequence[tuple[str, str]]) -> list[LinkResult]:
+    """:func:`link_evidence` of each image pair, with its person matches by link."""
+    out: list[LinkResult] = []
+    for n1, n2 in pairs:
+        cache: dict[tuple[str, str, int, int], PersonMatches] = {}
+        links = link_evidence(
+            n1,
+            n2,
+            ctx.observations[n1],
+            ctx.observations[n2],
+            ctx.cameras[n1],
+            ctx.cameras[n2],
+            cache,
+            ctx.options,
+        )
+        out.append((links, {(k[2], k[3]): m for k, m in cache.items()}))
+    return out
+
+
+@dataclasses.dataclass(frozen=True, kw_only=True, slots=True)
+class VerifyTask:
+    """One pair's associated VCs (image points) and classic matches to verify."""
+
+    image_name1: str
+    image_name2: str
+    vc_xy1: FloatArray
+    vc_xy2: FloatArray
+    classic_xy1: FloatArray | None
+    classic_xy2: FloatArray | None
+
+
+def verify_tasks(ctx: PairContext, tasks: Sequence[VerifyTask]) -> list[Verification]:
+    """:func:`verify_pair_with_classic` of each task."""
+    return [
+        verify_pair_with_classic(
+            ctx.cameras[t.image_name1],
+            ctx.cameras[t.image_name2],
+            t.vc_xy1,
+            t.vc_xy2,
+            t.classic_xy1,
+            t.classic_xy2,
+            ctx.options.verification,
+            ctx.options.max_classic_disagreement_deg,
+        )
+        for t in tasks
     ]
