@@ -44,7 +44,11 @@ class Synth:
     extra_noise: tuple[str, ...] = ()
     """Also write priors at these levels into priors_<level>/."""
     cameras: int | None = None
-    """Number of cameras (dome/dense: 8-16, drawn from the seed when unset)."""
+    """Number of cameras (dome/dense: 8-16, drawn from the seed when unset; at most
+    256 dome, 64 dense)."""
+    instants: int = 1
+    """Instants seen by the same static cameras, the people drawn anew at each
+    (images cam00_t00.jpg, cam00_t01.jpg, ...)."""
     camera_model: str | None = None
     """COLMAP camera model (default: SIMPLE_RADIAL dome, OPENCV dense, PINHOLE pair)."""
     angle: float | None = None
@@ -57,6 +61,9 @@ class Synth:
     """SIFT features per image."""
     no_database: bool = False
     """Skip SIFT extraction and matching."""
+    sift: bool = True
+    """SIFT extraction and exhaustive matching; --no-sift writes the cameras and
+    images only (VCs alone, no quadratic matching)."""
     with_ids: bool = False
     """Give the predicted priors each person's true id (default: anonymous, as a
     detector's output; the true ids are in gt/persons.json)."""
@@ -266,12 +273,14 @@ def _run_synth(cmd: Synth) -> int:
             noise=cmd.noise,  # type: ignore[arg-type]
             extra_noise=tuple(cmd.extra_noise),  # type: ignore[arg-type]
             num_cameras=cmd.cameras,
+            num_instants=cmd.instants,
             width=cmd.width,
             height=cmd.height,
             camera_model=cmd.camera_model,
             pair_angle_deg=cmd.angle,
             max_num_features=cmd.max_features,
             make_database=not cmd.no_database,
+            sift=cmd.sift,
             overwrite=cmd.overwrite,
             with_ids=cmd.with_ids,
             close_pair=cmd.close_pair,

@@ -527,3 +527,138 @@ def test_a_turned_prior_faces_away_and_is_read_off_its_own_mesh(dome_scene):
     assert len(smap.xy_img) > 0.8 * len(xy)
     points = np.einsum("nk,nkd->nd", smap.bary, turned[bodies.faces[smap.face_idx]])
     assert np.allclose(camera.img_from_cam(points), smap.xy_img, atol=1e-3)
+
+
+# --- Scaling: many cameras, static cameras over instants, databases without SIFT ----
+
+
+def test_names_sort_in_camera_order_past_100_cameras():
+    def names(n: int) -> list[str]:
+        layout = make_layout(
+            Preset.DOME,
+            np.random.default_rng(0),
+            num_phenotypes=6,
+            num_poses=8,
+            options=LayoutOptions(num_cameras=n),
+        )
+        return [c.name for c in layout.cameras]
+
+    assert names(100)[-1] == "cam99.jpg"  # two digits up to 100, as always
+    many = names(128)
+    assert many[0] == "cam000.jpg" and many[-1] == "cam127.jpg"
+    assert sorted(many) == many and len(set(many)) == 128
+    assert len(names(256)) == 256
+
+
+def test_too_many_cameras_are_refused():
+    rng = np.random.default_rng(0)
+    for preset, n, most in ((Preset.DOME, 257, 256), (Preset.DENSE, 65, 64)):
+        with pytest.raises(
+            ValueError, match=f"num_cameras={n} must be between 2 and {most}"
+        ):
+            make_layout(
+                preset,
+                rng,
+                num_phenotypes=6,
+                num_poses=8,
+                options=LayoutOptions(num_cameras=n),
+            )
+    with pytest.raises(ValueError, match="num_instants"):
+        generate("dome", Path("/nonexistent"), SynthOptions(num_instants=0))
+
+
+INSTANTS = ["--cameras", "3", "--people", "2", "--width", "160", "--height", "120"]
+
+
+@pytest.fixture(scope="module")
+def instants_scene(tmp_path_factory) -> Path:
+    """3 static cameras x 3 instants, 2 people each, database without SIFT (CLI)."""
+    from colmap_vc.cli import main
+
+    out = tmp_path_factory.mktemp("instants") / "scene"
+    args = ["synth", "dome", str(out), *INSTANTS, "--instants", "3", "--no-sift"]
+    assert main(args) == 0
+    return out
+
+
+def test_instants_share_the_camera_poses(instants_scene):
+    rec = _gt(instants_scene)
+    spec = json.loads((instants_scene / "scene.json").read_text())
+    assert spec["options"]["num_instants"] == 3 and not spec["options"]["sift"]
+    names = sorted(im.name for im in rec.images.values())
+    assert names == [f"cam{i:02d}_t{k:02d}.jpg" for i in range(3) for k in range(3)]
+    assert names == sorted(c["name"] for c in spec["cameras"])
+    poses: dict[str, list[np.ndarray]] = {}
+    for image in rec.images.values():
+        camera = image.name.split("_")[0]
+        poses.setdefault(camera, []).append(image.cam_from_world().matrix())
+        assert (instants_scene / "images" / image.name).is_file()
+        assert (
+            instants_scene / "gt/surface" / f"{Path(image.name).stem}.npz"
+        ).is_file()
+    for same in poses.values():
+        assert len(same) == 3
+        for pose in same[1:]:
+            np.testing.assert_array_equal(pose, same[0])
+    assert not np.allclose(poses["cam00"][0], poses["cam01"][0])
+    # The backdrop stays: images of one camera differ where the people are only.
+    import cv2
+
+    t0, t1 = (
+        cv2.imread(str(instants_scene / "images" / f"cam00_t0{k}.jpg")).astype(float)
+        for k in (0, 1)
+    )
+    assert np.median(np.abs(t0 - t1)) < 4
+
+
+def test_instants_have_distinct_people(instants_scene):
+    spec = json.loads((instants_scene / "scene.json").read_text())
+    who = read_gt_persons(gt_persons_path(instants_scene))
+    assert sorted(who.people) == list(range(6))
+    people = {p["person_id"]: p for p in spec["people"]}
+    assert [p["instant"] for p in spec["people"]] == [0, 0, 1, 1, 2, 2]
+    positions = np.array([p["position_xy"] for p in spec["people"]])
+    assert np.linalg.norm(positions[0] - positions[2:], axis=1).min() > 1e-3
+    gt = read_priors(instants_scene / "gt" / "priors")
+    assert set(gt.images) == set(who.visible) and len(gt.images) == 9
+    for name, ids in who.visible.items():
+        instant = int(name.split("_t")[1][:2])
+        assert ids and {people[i]["instant"] for i in ids} == {instant}, name
+        assert sorted(p.person_id for p in gt.images[name].persons) == ids
+        owners = np.load(instants_scene / "gt/surface" / f"{Path(name).stem}.npz")
+        assert sorted(set(owners["person_id"].tolist())) == ids
+
+
+def test_database_without_sift_has_cameras_and_images_only(instants_scene):
+    from colmap_vc import database
+
+    views = database.read_views(instants_scene / "database.db")
+    rec = _gt(instants_scene)
+    by_name = {im.name: im for im in rec.images.values()}
+    assert sorted(views.image_names) == sorted(by_name)
+    assert list(views.image_names) == sorted(views.image_names)
+    assert len(set(views.camera_ids.tolist())) == len(views.image_names)
+    for name, camera_id in zip(views.image_names, views.camera_ids, strict=True):
+        camera = views.cameras[int(camera_id)]
+        assert camera.model == by_name[name].camera.model
+        np.testing.assert_allclose(camera.params, by_name[name].camera.params)
+    assert not views.num_keypoints.any() and not views.num_vc_keypoints.any()
+    assert database.read_matches(instants_scene / "database.db") == {}
+
+
+def test_instants_are_deterministic_and_instant_0_is_the_one_instant_scene(tmp_path):
+    opts = dict(seed=2, num_cameras=2, num_people=1, width=160, height=120, sift=False)
+    one = generate("dome", tmp_path / "one", SynthOptions(**opts)).out_dir
+    a = generate("dome", tmp_path / "a", SynthOptions(num_instants=2, **opts)).out_dir
+    b = generate("dome", tmp_path / "b", SynthOptions(num_instants=2, **opts)).out_dir
+    assert _digest(a) == _digest(b)
+    # One instant keeps today's names; more instants leave instant 0 as it was.
+    d1, da = _digest(one), _digest(a)
+    assert sorted(p for p in d1 if p.startswith("images/")) == [
+        "images/cam00.jpg",
+        "images/cam01.jpg",
+    ]
+    for cam in ("cam00", "cam01"):
+        assert d1[f"images/{cam}.jpg"] == da[f"images/{cam}_t00.jpg"]
+        assert d1[f"gt/surface/{cam}.npz"] == da[f"gt/surface/{cam}_t00.npz"]
+        assert da[f"images/{cam}_t00.jpg"] != da[f"images/{cam}_t01.jpg"]

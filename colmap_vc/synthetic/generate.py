@@ -2,7 +2,7 @@
 
 Layout of OUT_DIR::
 
-    images/cam00.jpg ...        rendered images
+    images/cam00.jpg ...        rendered images (cam00_t00.jpg ... with instants)
     gt/sparse/                  ground-truth COLMAP model (.bin and .txt)
     gt/surface/cam00.npz ...    ground-truth surface maps (pixel -> person, face, bary)
     gt/priors/                  ground-truth priors (every visible person, true ids)
@@ -11,8 +11,15 @@ Layout of OUT_DIR::
     priors/                     predicted priors at the requested noise level:
                                 anonymous (unless with_ids), detection failures
     priors_<level>/             more levels when asked (--extra-noise)
-    database.db                 SIFT features + exhaustive matches (pycolmap)
+    database.db                 SIFT features + exhaustive matches (pycolmap), or
+                                cameras and images only (sift=False)
     scene.json                  what was generated, from which seed and options
+
+With ``num_instants`` > 1 the cameras stay where they are and the people are drawn
+anew at each instant (``static cameras``): every file above holds one image per
+camera and instant, and instant k's people have the ids k * P ... k * P + P - 1 (P
+people per instant). Instant 0 is the scene of one instant; the others draw from
+their own random streams.
 """
 
 from __future__ import annotations
@@ -21,7 +28,7 @@ import dataclasses
 import json
 import logging
 import time
-from dataclasses import asdict, dataclass, field
+from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
@@ -31,8 +38,9 @@ from scipy.spatial import cKDTree
 
 from .. import __version__, outputs
 from ..priors import write_priors
-from ..structs import ImagePrior, ScenePriors
+from ..structs import FloatArray, ImagePrior, ScenePriors
 from . import bodies as body_lib
+from .colmap_db import build_bare_database, build_sift_database, spec_camera
 from .detection import (
     DETECTION_LEVELS,
     false_person_view,
@@ -47,9 +55,17 @@ from .gt import (
     gt_persons_path,
     write_gt_persons,
 )
-from .layout import CameraSpec, LayoutOptions, Preset, SceneLayout, make_layout
+from .layout import (
+    CameraSpec,
+    LayoutOptions,
+    Preset,
+    SceneLayout,
+    draw_people,
+    instant_image_name,
+    make_layout,
+)
 from .noise import NOISE_LEVELS, NoiseLevel, PersonView, predict_person
-from .render import FIRST_PERSON, RenderedView, build_world, render_view
+from .render import FIRST_PERSON, RenderedView, World, build_world, render_view
 
 logger = logging.getLogger(__name__)
 
@@ -65,7 +81,11 @@ class SynthOptions:
     noise: NoiseLevel = NoiseLevel.REALISTIC
     """Noise level of the predicted priors (clean, realistic, hard)."""
     num_cameras: int | None = None
-    """Cameras (dome/dense: 8-16, drawn from the seed when unset)."""
+    """Cameras (dome/dense: 8-16, drawn from the seed when unset; at most 256 dome,
+    64 dense)."""
+    num_instants: int = 1
+    """Instants seen by the same static cameras: the people are drawn anew at each
+    (images cam00_t00.jpg, cam00_t01.jpg, ...)."""
     width: int = 640
     """Image width."""
     height: int = 480
@@ -80,7 +100,11 @@ class SynthOptions:
     max_num_features: int = 2048
     """SIFT features per image (a cap keeps extraction and matching fast)."""
     make_database: bool = True
-    """Run SIFT extraction and exhaustive matching into database.db."""
+    """Write database.db."""
+    sift: bool = True
+    """SIFT extraction and exhaustive matching into database.db; without, it holds
+    the cameras and images only (empty keypoints), for VCs alone: exhaustive
+    matching grows with the square of the images."""
     overwrite: bool = False
     """Replace an existing OUT_DIR."""
     num_threads: int = -1
@@ -108,21 +132,11 @@ class SynthSummary:
     timings_s: dict[str, float] = field(default_factory=dict)
 
 
-def _camera(spec: CameraSpec, camera_id: int) -> pycolmap.Camera:
-    return pycolmap.Camera(
-        camera_id=camera_id,
-        model=spec.model,
-        width=spec.width,
-        height=spec.height,
-        params=spec.params,
-    )
-
-
 def gt_reconstruction(layout: SceneLayout) -> pycolmap.Reconstruction:
     """Ground-truth model: camera i and image i (1-based, name order), no points."""
     rec = pycolmap.Reconstruction()
     for i, spec in enumerate(sorted(layout.cameras, key=lambda c: c.name), start=1):
-        rec.add_camera_with_trivial_rig(_camera(spec, i))
+        rec.add_camera_with_trivial_rig(spec_camera(spec, i))
         image = pycolmap.Image(name=spec.name, camera_id=i, image_id=i)
         rec.add_image_with_trivial_frame(
             image,
@@ -276,29 +290,76 @@ def _detect(
 
 
 def build_database(out_dir: Path, layout: SceneLayout, options: SynthOptions) -> Path:
-    """SIFT extraction with the known intrinsics, then exhaustive matching."""
+    """database.db of the images of ``layout``: SIFT extraction with the known
+    intrinsics and exhaustive matching, or (``sift`` off) cameras and images only."""
     db_path = out_dir / "database.db"
-    extraction = pycolmap.FeatureExtractionOptions(num_threads=options.num_threads)
-    extraction.sift.max_num_features = options.max_num_features
-    for spec in sorted(layout.cameras, key=lambda c: c.name):
-        reader = pycolmap.ImageReaderOptions(
-            camera_model=spec.model,
-            camera_params=",".join(f"{p:.17g}" for p in spec.params),
-        )
-        pycolmap.extract_features(
-            db_path,
-            out_dir / "images",
-            image_names=[spec.name],
-            camera_mode=pycolmap.CameraMode.PER_IMAGE,
-            reader_options=reader,
-            extraction_options=extraction,
-            device=pycolmap.Device.cpu,
-        )
-    matching = pycolmap.FeatureMatchingOptions(num_threads=options.num_threads)
-    pycolmap.match_exhaustive(
-        db_path, matching_options=matching, device=pycolmap.Device.cpu
+    if not options.sift:
+        return build_bare_database(db_path, layout.cameras)
+    return build_sift_database(
+        db_path,
+        out_dir / "images",
+        layout.cameras,
+        max_num_features=options.max_num_features,
+        num_threads=options.num_threads,
     )
-    return db_path
+
+
+def _check_instants(options: SynthOptions) -> None:
+    people = options.num_people + int(options.bystander)
+    if options.num_instants < 1:
+        raise ValueError(f"num_instants={options.num_instants} must be at least 1")
+    if people * options.num_instants > FALSE_ID_BASE:
+        raise ValueError(
+            f"num_instants={options.num_instants} x {people} people per instant "
+            f"needs person ids past {FALSE_ID_BASE}, the first id of false detections"
+        )
+
+
+def _instants(
+    layout: SceneLayout,
+    rng: np.random.Generator,
+    bodies: body_lib.BodyModel,
+    layout_options: LayoutOptions,
+    options: SynthOptions,
+) -> list[tuple[SceneLayout, np.random.Generator]]:
+    """The scene at each instant, with the random stream of its images: the static
+    cameras named for the instant's images and the instant's people. Instant 0 is
+    ``layout`` with ``rng``; instant k draws from its own stream (seed, 2000 + k), so
+    more instants change nothing of instant 0."""
+    out = []
+    for k in range(options.num_instants):
+        cameras = tuple(
+            replace(c, name=instant_image_name(c.name, k, options.num_instants))
+            for c in layout.cameras
+        )
+        if k == 0:
+            out.append((replace(layout, cameras=cameras), rng))
+            continue
+        rng_k = np.random.default_rng([options.seed, 2000 + k])
+        people = draw_people(
+            layout.cameras,
+            rng_k,
+            num_phenotypes=bodies.rest_vertices.shape[0],
+            num_poses=bodies.pose_rotvec.shape[0],
+            options=layout_options,
+            first_person_id=k * len(layout.people),
+        )
+        out.append((replace(layout, cameras=cameras, people=people), rng_k))
+    return out
+
+
+def _instant_world(
+    layout: SceneLayout,
+    bodies: body_lib.BodyModel,
+    rng: np.random.Generator,
+    backdrop: World,
+    options: SynthOptions,
+) -> tuple[list[FloatArray], World]:
+    """Posed bodies and render world of a later instant: its people before the
+    backdrop of instant 0 (same texture)."""
+    posed = [body_lib.pose_body(bodies, p.phenotype, p.pose) for p in layout.people]
+    world = build_world(layout, bodies, posed, rng, dress_alike=options.dress_alike)
+    return posed, replace(world, seed=backdrop.seed)
 
 
 def generate(
@@ -308,29 +369,38 @@ def generate(
     options = options or SynthOptions()
     preset = Preset(preset)
     out_dir = Path(out_dir)
+    _check_instants(options)
     outputs.prepare_output_dir(out_dir, "synth", overwrite=options.overwrite)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
     rng = np.random.default_rng(options.seed)
     bodies = body_lib.load_bodies()
+    layout_options = LayoutOptions(
+        num_people=options.num_people,
+        num_cameras=options.num_cameras,
+        width=options.width,
+        height=options.height,
+        camera_model=options.camera_model,
+        pair_angle_deg=options.pair_angle_deg,
+        close_pair=options.close_pair,
+        bystander=options.bystander,
+    )
     layout = make_layout(
         preset,
         rng,
         num_phenotypes=bodies.rest_vertices.shape[0],
         num_poses=bodies.pose_rotvec.shape[0],
-        options=LayoutOptions(
-            num_people=options.num_people,
-            num_cameras=options.num_cameras,
-            width=options.width,
-            height=options.height,
-            camera_model=options.camera_model,
-            pair_angle_deg=options.pair_angle_deg,
-            close_pair=options.close_pair,
-            bystander=options.bystander,
-        ),
+        options=layout_options,
     )
     posed = [body_lib.pose_body(bodies, p.phenotype, p.pose) for p in layout.people]
     world = build_world(layout, bodies, posed, rng, dress_alike=options.dress_alike)
+    instants = _instants(layout, rng, bodies, layout_options, options)
+    # Every image (camera x instant) and every person of every instant.
+    scene = replace(
+        layout,
+        cameras=tuple(c for inst, _ in instants for c in inst.cameras),
+        people=tuple(p for inst, _ in instants for p in inst.people),
+    )
     for sub in ("images", "gt/surface", "gt/sparse"):
         (out_dir / sub).mkdir(parents=True, exist_ok=True)
     timings["setup"] = time.perf_counter() - t0
@@ -348,64 +418,69 @@ def generate(
     }
     person_pixels: dict[str, int] = {}
     t_render = t_priors = 0.0
-    for spec in layout.cameras:
-        t1 = time.perf_counter()
-        view = render_view(world, spec, rng)
-        # OpenCV writes BGR; the renderer produces RGB.
-        cv2.imwrite(
-            str(out_dir / "images" / spec.name),
-            view.image[:, :, ::-1],
-            [cv2.IMWRITE_JPEG_QUALITY, 95],
-        )
-        t2 = time.perf_counter()
-        camera = _camera(spec, 1)
-        views = _person_views(view, layout, posed, spec, world)
-        stem = Path(spec.name).stem
-        person_pixels[spec.name] = _write_surface_map(
-            out_dir / "gt/surface" / f"{stem}.npz", views, bodies
-        )
-        # Detector order is not identity order: shuffle the people per image.
-        order = rng.permutation(len(views))
-        gt_priors[spec.name] = ImagePrior(
-            image_name=spec.name,
-            persons=tuple(
-                predict_person(bodies, views[i], camera, NoiseLevel.CLEAN, rng)
-                for i in order
-            ),
-        )
-        visible[spec.name] = sorted(v.person_id for v in views)
-        _detect(
-            pred,
-            bodies,
-            views,
-            view,
-            layout,
-            spec.name,
-            camera,
-            NoiseLevel(options.noise),
-            rng,
-            options.with_ids,
-        )
-        for level in extra:
+    for k, (instant, rng_k) in enumerate(instants):
+        if k:
+            t1 = time.perf_counter()
+            posed, world = _instant_world(instant, bodies, rng_k, world, options)
+            timings["setup"] += time.perf_counter() - t1
+        for spec in instant.cameras:
+            t1 = time.perf_counter()
+            view = render_view(world, spec, rng_k)
+            # OpenCV writes BGR; the renderer produces RGB.
+            cv2.imwrite(
+                str(out_dir / "images" / spec.name),
+                view.image[:, :, ::-1],
+                [cv2.IMWRITE_JPEG_QUALITY, 95],
+            )
+            t2 = time.perf_counter()
+            camera = spec_camera(spec, 1)
+            views = _person_views(view, instant, posed, spec, world)
+            stem = Path(spec.name).stem
+            person_pixels[spec.name] = _write_surface_map(
+                out_dir / "gt/surface" / f"{stem}.npz", views, bodies
+            )
+            # Detector order is not identity order: shuffle the people per image.
+            order = rng_k.permutation(len(views))
+            gt_priors[spec.name] = ImagePrior(
+                image_name=spec.name,
+                persons=tuple(
+                    predict_person(bodies, views[i], camera, NoiseLevel.CLEAN, rng_k)
+                    for i in order
+                ),
+            )
+            visible[spec.name] = sorted(v.person_id for v in views)
             _detect(
-                extra_pred[level],
+                pred,
                 bodies,
                 views,
                 view,
-                layout,
+                instant,
                 spec.name,
                 camera,
-                level,
-                extra_rng[level],
+                NoiseLevel(options.noise),
+                rng_k,
                 options.with_ids,
             )
-        t_render += t2 - t1
-        t_priors += time.perf_counter() - t2
+            for level in extra:
+                _detect(
+                    extra_pred[level],
+                    bodies,
+                    views,
+                    view,
+                    instant,
+                    spec.name,
+                    camera,
+                    level,
+                    extra_rng[level],
+                    options.with_ids,
+                )
+            t_render += t2 - t1
+            t_priors += time.perf_counter() - t2
     timings["render"] = t_render
     timings["priors"] = t_priors
 
     t1 = time.perf_counter()
-    sizes = {c.name: (c.width, c.height) for c in layout.cameras}
+    sizes = {c.name: (c.width, c.height) for c in scene.cameras}
     templates = {"anny": bodies.faces}
     write_priors(
         ScenePriors(images=gt_priors),
@@ -414,7 +489,7 @@ def generate(
         image_sizes=sizes,
     )
     roles = {
-        p.person_id: "bystander" if p.bystander else "person" for p in layout.people
+        p.person_id: "bystander" if p.bystander else "person" for p in scene.people
     }
     for folder, det in [("priors", pred)] + [
         (f"priors_{level.value}", d) for level, d in extra_pred.items()
@@ -435,18 +510,67 @@ def generate(
                 dropped=det.dropped,
             ),
         )
-    rec = gt_reconstruction(layout)
+    rec = gt_reconstruction(scene)
     rec.write_binary(str(out_dir / "gt/sparse"))
     rec.write_text(str(out_dir / "gt/sparse"))
     timings["write"] = time.perf_counter() - t1
 
     if options.make_database:
         t1 = time.perf_counter()
-        build_database(out_dir, layout, options)
+        build_database(out_dir, scene, options)
         timings["database"] = time.perf_counter() - t1
     timings["total"] = time.perf_counter() - t0
 
-    spec_json = {
+    (out_dir / "scene.json").write_text(
+        json.dumps(_scene_spec(preset, scene, bodies, options), indent=1)
+    )
+    summary = SynthSummary(
+        out_dir=out_dir,
+        preset=preset,
+        num_images=len(scene.cameras),
+        num_people=len(scene.people),
+        person_pixels=person_pixels,
+        timings_s=timings,
+    )
+    logger.info(
+        "synth %s: %d images, %d people, %.1f s "
+        "(render %.1f s, priors %.1f s, database %.1f s; per image: render %.3f s, "
+        "priors %.3f s)",
+        preset.value,
+        summary.num_images,
+        summary.num_people,
+        timings["total"],
+        timings["render"],
+        timings["priors"],
+        timings.get("database", 0.0),
+        timings["render"] / summary.num_images,
+        timings["priors"] / summary.num_images,
+    )
+    return summary
+
+
+def _scene_spec(
+    preset: Preset,
+    scene: SceneLayout,
+    bodies: body_lib.BodyModel,
+    options: SynthOptions,
+) -> dict:
+    """scene.json: what was generated (every image and person), from which options."""
+    num_people = len(scene.people) // options.num_instants
+    people = []
+    for p in scene.people:
+        person = {
+            "person_id": p.person_id,
+            "phenotype": bodies.phenotype_names[p.phenotype],
+            "pose": bodies.pose_names[p.pose],
+            "position_xy": p.position_xy.tolist(),
+            "yaw_deg": float(np.degrees(p.yaw_rad)),
+            "bystander": p.bystander,
+        }
+        if options.num_instants > 1:
+            person["instant"] = p.person_id // num_people
+        people.append(person)
+    return {
         "colmap_vc_version": __version__,
         "preset": preset.value,
         "options": {
@@ -455,18 +579,8 @@ def generate(
         },
         "noise_model": asdict(NOISE_LEVELS[NoiseLevel(options.noise)]),
         "detection_model": asdict(DETECTION_LEVELS[NoiseLevel(options.noise)]),
-        "backdrop": layout.backdrop.value,
-        "people": [
-            {
-                "person_id": p.person_id,
-                "phenotype": bodies.phenotype_names[p.phenotype],
-                "pose": bodies.pose_names[p.pose],
-                "position_xy": p.position_xy.tolist(),
-                "yaw_deg": float(np.degrees(p.yaw_rad)),
-                "bystander": p.bystander,
-            }
-            for p in layout.people
-        ],
+        "backdrop": scene.backdrop.value,
+        "people": people,
         "cameras": [
             {
                 "name": c.name,
@@ -474,27 +588,6 @@ def generate(
                 "params": c.params.tolist(),
                 "cam_from_world": c.cam_from_world.tolist(),
             }
-            for c in layout.cameras
+            for c in scene.cameras
         ],
     }
-    (out_dir / "scene.json").write_text(json.dumps(spec_json, indent=1))
-    summary = SynthSummary(
-        out_dir=out_dir,
-        preset=preset,
-        num_images=len(layout.cameras),
-        num_people=len(layout.people),
-        person_pixels=person_pixels,
-        timings_s=timings,
-    )
-    logger.info(
-        "synth %s: %d images, %d people, %.1f s "
-        "(render %.1f s, priors %.1f s, database %.1f s)",
-        preset.value,
-        summary.num_images,
-        summary.num_people,
-        timings["total"],
-        timings["render"],
-        timings["priors"],
-        timings.get("database", 0.0),
-    )
-    return summary

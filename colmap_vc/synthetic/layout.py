@@ -1,10 +1,12 @@
 """Scene layouts of the synthetic world: where the cameras and the people are.
 
 Three presets mimic the data the method is for:
-- ``dome``: a CMU-Panoptic-like dome, 8-16 cameras on a 3-5 m sphere all around one to
-  three people, elevations 0-60 degrees, so many pairs are 90-180 degrees apart. The
-  backdrop is the dome's low-texture geodesic panelling, as in Panoptic.
-- ``dense``: a handheld capture in a textured room, 8-16 cameras 5-20 degrees apart.
+- ``dome``: a CMU-Panoptic-like dome, 8-16 cameras (up to 256 when asked) on a 3-5 m
+  sphere all around one to three people, elevations 0-60 degrees, so many pairs are
+  90-180 degrees apart. The backdrop is the dome's low-texture geodesic panelling, as
+  in Panoptic.
+- ``dense``: a handheld capture in a textured room, 8-16 cameras (up to 64) 5-20
+  degrees apart.
 - ``pair``: the paper's two-frame task, two cameras a controlled angle apart.
 
 World frame: metres, +Z up, the floor is z = 0, the people stand around the origin.
@@ -14,7 +16,8 @@ from __future__ import annotations
 
 import enum
 import math
-from dataclasses import dataclass
+from collections.abc import Sequence
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -82,7 +85,8 @@ class LayoutOptions:
     num_people: int = 1
     """People in the scene (1 to 3)."""
     num_cameras: int | None = None
-    """Cameras (8-16 for dome/dense; drawn from the seed when None). Pair: always 2."""
+    """Cameras (8-16 for dome/dense drawn from the seed when None; at most 256 dome, 64
+    dense). Pair: always 2."""
     width: int = 640
     """Image width in pixels."""
     height: int = 480
@@ -98,6 +102,10 @@ class LayoutOptions:
     """Add a bystander 3-5 m from the group's centre, in the widest gap between camera
     azimuths: only the cameras across the scene see it, small and often cut."""
 
+
+MAX_CAMERAS = {Preset.DOME: 256, Preset.DENSE: 64}
+"""Most cameras of a preset. Dense stops at 64: its cameras follow each other 5-20
+degrees apart (12.5 on average), so 64 of them already circle the people twice."""
 
 DEFAULT_CAMERA_MODEL = {
     Preset.DOME: "SIMPLE_RADIAL",
@@ -212,8 +220,18 @@ def make_layout(
         num_cameras = 2
     else:
         num_cameras = options.num_cameras or int(rng.integers(8, 17))
-        if not 2 <= num_cameras <= 64:
-            raise ValueError(f"num_cameras={num_cameras} must be between 2 and 64")
+        most = MAX_CAMERAS[preset]
+        if not 2 <= num_cameras <= most:
+            why = (
+                ": its cameras stand 5-20 degrees apart in a row, 64 of them already "
+                "circle the people twice (use the dome preset for more)"
+                if preset is Preset.DENSE
+                else ""
+            )
+            raise ValueError(
+                f"num_cameras={num_cameras} must be between 2 and {most} for the "
+                f"{preset.value} preset{why}"
+            )
 
     if preset is Preset.DOME:
         # All around: even azimuths with jitter, so neighbours are 360/N apart.
@@ -259,6 +277,7 @@ def make_layout(
         radius = np.array([rng.uniform(3.0, 3.5), rng.uniform(4.0, 4.5)])
         backdrop = Backdrop.ROOM
 
+    digits = index_digits(num_cameras)
     cameras = []
     shared_target = np.r_[centroid, 1.0]
     for i in range(num_cameras):
@@ -274,7 +293,7 @@ def make_layout(
         )
         cameras.append(
             CameraSpec(
-                name=f"cam{i:02d}.jpg",
+                name=f"cam{i:0{digits}d}.jpg",
                 model=model,
                 width=options.width,
                 height=options.height,
@@ -290,6 +309,47 @@ def make_layout(
     return SceneLayout(
         preset=preset, backdrop=backdrop, cameras=tuple(cameras), people=people
     )
+
+
+def index_digits(count: int) -> int:
+    """Digits of the indices 0..count-1 in file names, so that names sort in index
+    order: 2 up to 100 (``cam00``-``cam99`` as always), 3 up to 1000."""
+    return max(2, len(str(count - 1)))
+
+
+def instant_image_name(camera_name: str, instant: int, num_instants: int) -> str:
+    """Image of one camera at one instant: ``cam00.jpg`` -> ``cam00_t01.jpg`` (the
+    regular expression ``(cam\\d+)_`` finds the camera); one instant keeps the name."""
+    if num_instants == 1:
+        return camera_name
+    stem, dot, ext = camera_name.rpartition(".")
+    return f"{stem}_t{instant:0{index_digits(num_instants)}d}{dot}{ext}"
+
+
+def draw_people(
+    cameras: Sequence[CameraSpec],
+    rng: np.random.Generator,
+    *,
+    num_phenotypes: int,
+    num_poses: int,
+    options: LayoutOptions,
+    first_person_id: int,
+) -> tuple[PersonPlacement, ...]:
+    """The people of another instant before the same static cameras: new positions,
+    bodies, poses and facing drawn from ``rng`` as :func:`make_layout` draws them
+    (bystander included), with ids from ``first_person_id`` on."""
+    people = _place_people(
+        options.num_people, num_phenotypes, num_poses, rng, options.close_pair
+    )
+    if options.bystander:
+        centroid = np.mean([p.position_xy for p in people], axis=0)
+        centres = np.array([c.centre for c in cameras])
+        azimuth = np.arctan2(centres[:, 1] - centroid[1], centres[:, 0] - centroid[0])
+        bystander = _place_bystander(
+            len(people), centroid, azimuth, num_phenotypes, num_poses, rng
+        )
+        people = (*people, bystander)
+    return tuple(replace(p, person_id=first_person_id + p.person_id) for p in people)
 
 
 def _place_bystander(
