@@ -221,6 +221,7 @@ def compute_virtual_correspondences(
     samples = template_samples(priors, options.matching.num_samples)
     observations: dict[str, list[PersonObservations]] = {}
     cues: list[PersonCue] = []
+    groups_of: dict[str, list[str]] = {}
     for name in tqdm(
         names, desc="observe", disable=not options.show_progress, leave=False
     ):
@@ -235,6 +236,8 @@ def compute_virtual_correspondences(
             priors, name, camera, samples, options.matching, groups
         )
         cues += person_cues(name, prior, groups)
+        if groups:
+            groups_of[name] = groups
     timings["observe"] = time.perf_counter() - t0
 
     def camera_of(name: str) -> pycolmap.Camera:
@@ -273,7 +276,12 @@ def compute_virtual_correspondences(
     ) as executor:
         linked = executor.map(
             link_pairs,
-            PairContext(observations=observations, cameras=cameras, options=options),
+            PairContext(
+                observations=observations,
+                cameras=cameras,
+                options=options,
+                groups=groups_of,
+            ),
             name_pairs,
             "person links",
         )

@@ -171,10 +171,19 @@ def link_evidence(
     cam2: pycolmap.Camera,
     cache: dict[tuple[str, str, int, int], PersonMatches],
     options: AugmentOptions,
+    groups1: Sequence[str] | None = None,
+    groups2: Sequence[str] | None = None,
 ) -> list[LinkEvidence]:
-    """Every person link of one pair, verified on its own VCs (a subsample)."""
+    """Every person link of one pair, verified on its own VCs (a subsample).
+
+    ``groups1``/``groups2`` (one per person, static cameras): people of different
+    instants are never linked, so their links are not computed.
+    """
     out = []
     for a, b in itertools.product(range(len(obs1)), range(len(obs2))):
+        g1, g2 = (groups1[a] if groups1 else ""), (groups2[b] if groups2 else "")
+        if g1 and g2 and g1 != g2:
+            continue
         m = match_persons(obs1[a], obs2[b])
         cache[(n1, n2, a, b)] = m
         if len(m) < options.min_num_vcs:
@@ -229,6 +238,7 @@ class PairContext:
     observations: Mapping[str, list[PersonObservations]]
     cameras: Mapping[str, pycolmap.Camera]
     options: AugmentOptions
+    groups: Mapping[str, Sequence[str]] | None = None  # instant per person
 
 
 LinkResult = tuple[list[LinkEvidence], dict[tuple[int, int], PersonMatches]]
@@ -248,6 +258,8 @@ def link_pairs(ctx: PairContext, pairs: Sequence[tuple[str, str]]) -> list[LinkR
             ctx.cameras[n2],
             cache,
             ctx.options,
+            ctx.groups.get(n1) if ctx.groups else None,
+            ctx.groups.get(n2) if ctx.groups else None,
         )
         out.append((links, {(k[2], k[3]): m for k, m in cache.items()}))
     return out
