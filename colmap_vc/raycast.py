@@ -17,7 +17,7 @@ from typing import Any
 import numpy as np
 import pycolmap
 
-from .structs import FloatArray, IndexArray, _check_shape
+from .structs import BoolArray, FloatArray, IndexArray, _check_shape
 
 logger = logging.getLogger(__name__)
 
@@ -184,6 +184,19 @@ def _refine_hits(
     v = np.einsum("ij,ij->i", dirs, q) * inv_det
     t = np.einsum("ij,ij->i", e2, q) * inv_det
     return t, np.stack([1.0 - u - v, u, v], axis=1)
+
+
+def inside_face(bary: FloatArray, hit: BoolArray) -> FloatArray:
+    """Barycentrics of the hits (``hit``) clipped into their face and renormalised.
+
+    Embree picks the face in float32; the float64 barycentrics of a ray grazing an
+    edge can fall just outside it (-1e-3 was seen), which the priors format refuses
+    for surface maps. The hit point moves by at most that fraction of the face.
+    """
+    out = bary.copy()
+    inside = out[hit].clip(0.0, None)
+    out[hit] = inside / inside.sum(axis=1, keepdims=True)
+    return out
 
 
 def _cast_once(

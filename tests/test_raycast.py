@@ -114,3 +114,12 @@ def test_bad_shapes_raise():
             np.zeros((2, 2)),
             np.zeros((2, 3)),
         )
+
+
+def test_inside_face_clips_grazing_hits_into_their_face() -> None:
+    bary = np.array([[-0.0012, 0.2236, 0.7776], [0.2, 0.3, 0.5], [0.0, 0.0, 0.0]])
+    hit = np.array([True, True, False])
+    out = raycast.inside_face(bary, hit)
+    assert (out[hit] >= 0).all() and np.allclose(out[hit].sum(axis=1), 1.0)
+    assert np.allclose(out[1], bary[1]) and np.allclose(out[2], 0.0)
+    assert np.abs(out[0] - bary[0]).max() < 2e-3

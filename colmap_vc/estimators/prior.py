@@ -64,9 +64,7 @@ def surface_map(
     scene = raycast.build_scene([(vertices_cam, faces)])
     _, face, _, bary = raycast.first_hits(scene, np.zeros_like(dirs), dirs)
     hit = face >= 0
-    # Float64 re-intersection can leave -1e-12 at an edge: clip and renormalise.
-    bary = bary[hit].clip(0.0, None)
-    bary /= bary.sum(axis=1, keepdims=True)
+    bary = raycast.inside_face(bary, hit)[hit]
     return SurfaceMap(xy_img=xy[hit], face_idx=face[hit], bary=bary)
 
 

@@ -233,7 +233,7 @@ def false_person_view(
         cam_from_body=cam_from_body,
         xy_img=xy[hit],
         face_idx=face[hit],
-        bary=bary[hit],
+        bary=raycast.inside_face(bary, hit)[hit],
         mask=mask,
     )
 

@@ -278,7 +278,7 @@ def _predict_surface_map(
             last = np.r_[hits.ray_idx[1:] != hits.ray_idx[:-1], True]
             rows = sel[hits.ray_idx[last]]
             face[rows] = hits.face_idx[last]
-            bary[rows] = hits.bary[last]
+            bary[rows] = raycast.inside_face(hits.bary[last], np.ones(last.sum(), bool))
     if model.lr_flip_prob > 0:
         for limb in ("arm", "leg"):
             if rng.random() < model.lr_flip_prob:

@@ -229,5 +229,5 @@ def render_view(
         image=np.clip(image, 0, 255).astype(np.uint8),
         geom_idx=geom.reshape(shape),
         face_idx=face.reshape(shape),
-        bary=bary.reshape(*shape, 3),
+        bary=raycast.inside_face(bary, hit).reshape(*shape, 3),
     )
