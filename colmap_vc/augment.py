@@ -20,7 +20,7 @@ from tqdm import tqdm
 
 from . import __version__, database
 from .association import AssociationOptions, LinkEvidence, PersonCue, associate
-from .executor import ExecutorKind, ExecutorOptions, open_executor
+from .executor import ExecutorKind, ExecutorOptions, check_options, open_executor
 from .matching import (
     MatchingOptions,
     PersonMatches,
@@ -514,6 +514,13 @@ def run(
     database_path = Path(database_path)
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    check_options(
+        ExecutorOptions(
+            executor=options.executor,
+            workers=options.workers,
+            scheduler=options.scheduler,
+        )
+    )
     views = database.read_views(database_path)
     if not options.dry_run:
         database.check_before_write(database_path)  # before the work, not after

@@ -215,19 +215,36 @@ class DaskExecutor:
         return _flatten(parts, [len(c) for c in chunks])
 
 
-def _dask_client(scheduler: str | None) -> Any:
-    try:
-        from distributed import Client
-    except ImportError as e:
-        raise RuntimeError(
-            "--executor dask needs dask.distributed: pip install 'colmap-vc[dask]'"
-        ) from e
-    if not scheduler:
+def check_options(options: ExecutorOptions) -> None:
+    """Raise before any work when ``options`` cannot run (ValueError, RuntimeError)."""
+    kind = ExecutorKind(options.executor)
+    if options.workers is not None and options.workers < 1:
+        raise ValueError(f"--workers {options.workers}: at least 1")
+    if kind is not ExecutorKind.DASK:
+        return
+    if not options.scheduler:
         raise ValueError(
             "--executor dask needs --scheduler ADDRESS (a dask.distributed "
             "scheduler, e.g. tcp://10.0.0.1:8786; docs/scaling.md)"
         )
-    return Client(scheduler)
+    try:
+        import distributed  # noqa: F401
+    except ImportError as e:
+        raise RuntimeError(
+            "--executor dask needs dask.distributed: pip install 'colmap-vc[dask]'"
+        ) from e
+
+
+def _dask_client(scheduler: str) -> Any:
+    from distributed import Client
+
+    try:
+        return Client(scheduler, timeout="10s")
+    except OSError as e:
+        raise RuntimeError(
+            f"no dask.distributed scheduler answers at {scheduler}: {e} "
+            "(docs/scaling.md says how to start one)"
+        ) from e
 
 
 @contextmanager
@@ -235,6 +252,7 @@ def open_executor(
     options: ExecutorOptions, num_items: int, show_progress: bool = False
 ) -> Iterator[Executor]:
     """The executor ``options`` ask for, sized for ``num_items`` items."""
+    check_options(options)
     kind = ExecutorKind(options.executor)
     workers = options.workers or os.cpu_count() or 1
     if kind is ExecutorKind.AUTO:
@@ -253,7 +271,7 @@ def open_executor(
         finally:
             ex.close()
     else:
-        client = _dask_client(options.scheduler)
+        client = _dask_client(str(options.scheduler))
         logger.info("per-pair stages on the dask cluster at %s", options.scheduler)
         try:
             yield DaskExecutor(client, options.chunks_per_worker, show_progress)

@@ -276,6 +276,27 @@ CASES = [
         lambda p: [*_augment(p), "--static-cameras", "(xyz)"],
         "static",
     ),
+    Case(
+        "augment: dask without a scheduler",
+        lambda p: [*_augment(p), "--executor", "dask"],
+        "--scheduler",
+    ),
+    Case(
+        "augment: dask scheduler that does not answer",
+        lambda p: [
+            *_augment(p),
+            "--executor",
+            "dask",
+            "--scheduler",
+            "tcp://127.0.0.1:9",
+        ],
+        "no dask.distributed scheduler answers",
+    ),
+    Case(
+        "augment: zero workers",
+        lambda p: [*_augment(p), "--workers", "0"],
+        "at least 1",
+    ),
     Case("augment: database locked", _augment, "locked"),  # see test below
     # ------------------------------------------------------------ map
     Case(
