@@ -24,6 +24,8 @@ import logging
 import multiprocessing
 import os
 import pickle
+import re
+import sys
 import tempfile
 from collections.abc import Callable, Iterator, Sequence
 from concurrent.futures import Future, ProcessPoolExecutor, as_completed
@@ -247,6 +249,25 @@ def _dask_client(scheduler: str) -> Any:
         ) from e
 
 
+def main_module_is_guarded() -> bool:
+    """Whether spawned workers can import ``__main__`` without running it again.
+
+    A spawned worker imports the main script; one that calls colmap-vc at top level,
+    without ``if __name__ == "__main__":``, would run again in every worker. The
+    CLI, notebooks and guarded scripts are safe; ``auto`` stays in this process for
+    any other script (``executor="processes"`` asks for workers regardless).
+    """
+    main = sys.modules.get("__main__")
+    path = getattr(main, "__file__", None)
+    if not path:
+        return True  # interactive or notebook: nothing to re-run
+    try:
+        source = Path(path).read_text(errors="replace")
+    except OSError:
+        return False
+    return re.search(r"__name__\s*==\s*[\"']__main__[\"']", source) is not None
+
+
 @contextmanager
 def open_executor(
     options: ExecutorOptions, num_items: int, show_progress: bool = False
@@ -258,7 +279,9 @@ def open_executor(
     if kind is ExecutorKind.AUTO:
         kind = (
             ExecutorKind.PROCESSES
-            if workers > 1 and num_items >= options.min_parallel_items
+            if workers > 1
+            and num_items >= options.min_parallel_items
+            and main_module_is_guarded()
             else ExecutorKind.SERIAL
         )
     if kind is ExecutorKind.SERIAL:

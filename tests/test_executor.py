@@ -114,3 +114,23 @@ def test_every_executor_writes_the_same_database(
     assert contents["processes"] == contents["serial"]
     assert contents["dask"] == contents["serial"]
     assert np.sum([len(v) for v in contents["serial"]["inliers"].values()]) > 0  # type: ignore[union-attr]
+
+
+def test_auto_stays_here_under_an_unguarded_script(
+    tmp_path: Path, monkeypatch: pytest.MonkeyPatch
+) -> None:
+    """Spawned workers import __main__: a script that calls augment at top level
+    would run again in each of them, so auto does not spawn from such a script."""
+    import sys
+    import types
+
+    script = tmp_path / "user_script.py"
+    script.write_text("from colmap_vc import augment\naugment.run('db', 'priors')\n")
+    fake = types.ModuleType("__main__")
+    fake.__file__ = str(script)
+    monkeypatch.setitem(sys.modules, "__main__", fake)
+    with open_executor(ExecutorOptions(workers=2), num_items=500) as ex:
+        assert isinstance(ex, SerialExecutor)
+    script.write_text(script.read_text() + "if __name__ == '__main__':\n    pass\n")
+    with open_executor(ExecutorOptions(workers=2), num_items=500) as ex:
+        assert isinstance(ex, ProcessExecutor)
