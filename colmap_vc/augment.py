@@ -7,7 +7,6 @@ result in one transaction (or only reports, with ``dry_run``).
 
 from __future__ import annotations
 
-import dataclasses
 import logging
 import time
 from collections.abc import Mapping
@@ -31,24 +30,23 @@ from .priors import read_priors
 from .static_cameras import merge_priors, parse_static_cameras
 from .structs import (
     FloatArray,
-    HitKind,
     IndexArray,
     PairGeometry,
     PairVcMatches,
     ScenePriors,
     VcKeypoints,
 )
+from .vc_output import Candidate, PairReport, assemble
 from .vc_pairs import (
     PairContext,
     VerifyTask,
     concat_matches,
-    gather,
-    initial_thickness,
+    in_stored_order,
     link_pairs,
-    observation_codes,
     observe_image,
     person_cues,
     template_samples,
+    verify_task,
     verify_tasks,
 )
 from .verification import (
@@ -114,28 +112,6 @@ class AugmentOptions:
     """Compute and report, write nothing."""
     show_progress: bool = True
     """Progress bar on stderr."""
-
-
-@dataclass(frozen=True, kw_only=True, slots=True)
-class PairReport:
-    """Per-pair line of the summary."""
-
-    image_name1: str
-    image_name2: str
-    num_vcs: int
-    num_inliers: int
-    num_classic: int
-    num_classic_inliers: int
-    num_by_kind: dict[str, int]
-    association: list[tuple[int, int]]  # (person index 1, person index 2)
-    association_method: str
-    verified: bool
-    reason: str = ""  # why a pair with VCs has no geometry (or was dropped)
-
-    @property
-    def inlier_ratio(self) -> float:
-        """VC inliers / VCs."""
-        return self.num_inliers / self.num_vcs if self.num_vcs else 0.0
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -309,25 +285,16 @@ def compute_virtual_correspondences(
             )
             if id1 != id_of(n1):
                 cm = cm[:, ::-1]  # classic matches are stored in id order
-            # RANSAC sees them in a canonical order (image-name order, then
-            # keypoints), whatever the ids; the inlier mask goes back to the stored
-            # order below.
-            canonical = np.lexsort((cm[:, 1], cm[:, 0]))
-            cm = cm[canonical]
-            tasks.append(
-                VerifyTask(
-                    image_name1=n1,
-                    image_name2=n2,
-                    vc_xy1=gather(observations[n1], cat[0], cat[1], "xy_img"),
-                    vc_xy2=gather(observations[n2], cat[2], cat[3], "xy_img"),
-                    classic_xy1=classic_keypoints[id_of(n1)][cm[:, 0]]
-                    if len(cm)
-                    else None,
-                    classic_xy2=classic_keypoints[id_of(n2)][cm[:, 1]]
-                    if len(cm)
-                    else None,
-                )
+            task, canonical = verify_task(
+                n1,
+                n2,
+                cat,
+                observations,
+                cm,
+                classic_keypoints.get(id_of(n1)),
+                classic_keypoints.get(id_of(n2)),
             )
+            tasks.append(task)
             stored_order.append((canonical, len(cm)))
             cats.append(cat)
         results = executor.map(
@@ -343,10 +310,7 @@ def compute_virtual_correspondences(
         tasks, results, stored_order, cats, strict=True
     ):
         n1, n2 = task.image_name1, task.image_name2
-        if num_cm:
-            stored = np.zeros(num_cm, dtype=bool)
-            stored[canonical] = result.classic_is_inlier
-            result = dataclasses.replace(result, classic_is_inlier=stored)
+        result = in_stored_order(result, canonical)
         if result.geometry is None:
             failed[(n1, n2)] = (cat, "the associated people's VCs do not verify")
             continue
@@ -361,25 +325,14 @@ def compute_virtual_correspondences(
     timings["verify"] = time.perf_counter() - t0
 
     # Back to the database's convention: pairs in image-id order.
-    candidates: list[
-        tuple[
-            str,
-            str,
-            Verification,
-            tuple[IndexArray, ...],
-            list[tuple[int, int]],
-            str,
-            int,
-            str,
-        ]
-    ] = []
+    candidates: list[Candidate] = []
     method = association.method
     for (n1, n2), (result, cat, num_classic) in verified.items():
         pl = association.links[(n1, n2)]
         if id_of(n1) > id_of(n2):
             n1, n2, cat = n2, n1, (cat[2], cat[3], cat[0], cat[1], cat[4], cat[5])
             result, pl = inverted(result), [(b, a) for a, b in pl]
-        candidates.append((n1, n2, result, cat, pl, method, num_classic, ""))
+        candidates.append(Candidate(n1, n2, result, cat, pl, method, num_classic))
     for (n1, n2), (cat, reason) in failed.items():
         pl = association.links.get((n1, n2), [])
         none = Verification(
@@ -390,110 +343,17 @@ def compute_virtual_correspondences(
         if id_of(n1) > id_of(n2):
             n1, n2, cat = n2, n1, (cat[2], cat[3], cat[0], cat[1], cat[4], cat[5])
             pl = [(b, a) for a, b in pl]
-        candidates.append((n1, n2, none, cat, pl, method, 0, reason))
-    candidates.sort(key=lambda c: pair_ids(c[0], c[1]))
-    used: dict[str, list[IndexArray]] = {n: [] for n in names}
-    for n1, n2, _, cat, *_rest in candidates:
-        used[n1].append(observation_codes(cat[0], cat[1]))
-        used[n2].append(observation_codes(cat[2], cat[3]))
+        candidates.append(Candidate(n1, n2, none, cat, pl, method, 0, reason))
+    candidates.sort(key=lambda c: pair_ids(c.name1, c.name2))
     timings["match_verify"] = timings["associate"] + timings["verify"]
-
-    # VC keypoints per image: every observation some pair uses, grouped by person.
     t0 = time.perf_counter()
-    keypoints: list[VcKeypoints] = []
-    codes_of: dict[str, IndexArray] = {}
-    for name in names:
-        if not used[name]:
-            continue
-        codes = np.unique(np.concatenate(used[name]))
-        codes_of[name] = codes
-        obs = observations[name]
-        person, row = codes >> 32, codes & 0xFFFFFFFF
-        pid_of = np.array(
-            [o.person_id if o.person_id >= 0 else k for k, o in enumerate(obs)],
-            np.int64,
-        )
-        keypoints.append(
-            VcKeypoints(
-                image_id=int(views.image_ids[name_to_idx[name]]),
-                xy_img=gather(obs, person, row, "xy_img"),
-                person_id=pid_of[person],
-                track_id=gather(obs, person, row, "track_id").astype(np.int64),
-            )
-        )
-
-    pairs: list[PairVcMatches] = []
-    geometries: dict[Pair, PairGeometry] = {}
-    classic_inliers: dict[Pair, IndexArray] = {}
-    associations: list[database.PersonAssociation] = []
-    reports: list[PairReport] = []
-    for n1, n2, result, cat, assignment, method, num_classic, reason in candidates:
-        id1 = int(views.image_ids[name_to_idx[n1]])
-        id2 = int(views.image_ids[name_to_idx[n2]])
-        k1, r1, k2, r2, kind, _ = cat
-        obs1, obs2 = observations[n1], observations[n2]
-        idx1 = np.searchsorted(codes_of[n1], observation_codes(k1, r1))
-        idx2 = np.searchsorted(codes_of[n2], observation_codes(k2, r2))
-        x1 = gather(obs1, k1, r1, "first_hit_cam")
-        p1 = gather(obs1, k1, r1, "point_cam")
-        x2 = gather(obs2, k2, r2, "first_hit_cam")
-        p2 = gather(obs2, k2, r2, "point_cam")
-        pid_of = np.array(
-            [o.person_id if o.person_id >= 0 else k for k, o in enumerate(obs1)],
-            np.int64,
-        )
-        pid = pid_of[k1]
-        a, b = initial_thickness(x1, x2, p1, p2, result.geometry)
-        pairs.append(
-            PairVcMatches(
-                image_id1=id1,
-                image_id2=id2,
-                idx1=idx1,
-                idx2=idx2,
-                person_id=pid,
-                kind=kind,
-                points1_cam=np.nan_to_num(x1, nan=0.0),
-                points2_cam=np.nan_to_num(x2, nan=0.0),
-                a=a,
-                b=b,
-                is_inlier=result.vc_is_inlier,
-            )
-        )
-        if result.geometry is not None:
-            geometries[(id1, id2)] = result.geometry
-            if (
-                options.use_classic_matches
-                and num_classic
-                and len(result.classic_is_inlier)
-            ):
-                cm = classic_matches[(id1, id2)]
-                classic_inliers[(id1, id2)] = cm[result.classic_is_inlier]
-        for a_k, b_k in assignment:
-            associations.append(
-                database.PersonAssociation(
-                    image_id1=id1,
-                    image_id2=id2,
-                    person_id1=obs1[a_k].person_id if obs1[a_k].person_id >= 0 else a_k,
-                    person_id2=obs2[b_k].person_id if obs2[b_k].person_id >= 0 else b_k,
-                    method=database.AssociationMethod(method),
-                    score=float(result.num_inliers),
-                )
-            )
-        reports.append(
-            PairReport(
-                image_name1=n1,
-                image_name2=n2,
-                num_vcs=len(kind),
-                num_inliers=int(result.vc_is_inlier.sum()),
-                num_classic=num_classic,
-                num_classic_inliers=int(result.classic_is_inlier.sum()),
-                num_by_kind={h.name.lower(): int((kind == h).sum()) for h in HitKind},
-                association=[(int(a_), int(b_)) for a_, b_ in assignment],
-                association_method=method,
-                verified=result.geometry is not None,
-                reason=reason,
-            )
-        )
+    keypoints, pairs, geometries, classic_inliers, associations, reports = assemble(
+        candidates,
+        names,
+        observations,
+        {n: id_of(n) for n in names},
+        classic_matches if options.use_classic_matches else {},
+    )
     timings["assemble"] = time.perf_counter() - t0
     return VirtualCorrespondences(
         keypoints=keypoints,

@@ -277,6 +277,46 @@ class VerifyTask:
     classic_xy2: FloatArray | None
 
 
+def verify_task(
+    n1: str,
+    n2: str,
+    cat: tuple[IndexArray, ...],
+    observations: Mapping[str, list[PersonObservations]],
+    classic: IndexArray,
+    keypoints1: FloatArray | None,
+    keypoints2: FloatArray | None,
+) -> tuple[VerifyTask, IndexArray]:
+    """The task of one associated pair, and the order RANSAC sees its classic
+    matches in (``classic``: (C, 2) keypoint indices, image ``n1`` first).
+
+    RANSAC sees the classic matches in a canonical order (then keypoints), whatever
+    the image ids COLMAP gave; :func:`in_stored_order` puts the mask back.
+    """
+    canonical = np.lexsort((classic[:, 1], classic[:, 0]))
+    cm = classic[canonical]
+    has = len(cm) > 0 and keypoints1 is not None and keypoints2 is not None
+    return (
+        VerifyTask(
+            image_name1=n1,
+            image_name2=n2,
+            vc_xy1=gather(observations[n1], cat[0], cat[1], "xy_img"),
+            vc_xy2=gather(observations[n2], cat[2], cat[3], "xy_img"),
+            classic_xy1=keypoints1[cm[:, 0]] if has else None,  # type: ignore[index]
+            classic_xy2=keypoints2[cm[:, 1]] if has else None,  # type: ignore[index]
+        ),
+        canonical,
+    )
+
+
+def in_stored_order(result: Verification, canonical: IndexArray) -> Verification:
+    """The classic inlier mask of :func:`verify_task`'s order, in the stored order."""
+    if not len(canonical):
+        return result
+    stored = np.zeros(len(canonical), dtype=bool)
+    stored[canonical] = result.classic_is_inlier
+    return dataclasses.replace(result, classic_is_inlier=stored)
+
+
 def verify_tasks(ctx: PairContext, tasks: Sequence[VerifyTask]) -> list[Verification]:
     """:func:`verify_pair_with_classic` of each task."""
     return [
