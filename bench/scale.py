@@ -184,6 +184,7 @@ def plot(rows: list[dict], path: Path) -> None:
 
     dome = [r for r in rows if r["instants"] == 1]
     fig, ax = plt.subplots(1, 2, figsize=(11, 4.2))
+    colours = dict(zip(STAGES, plt.get_cmap("tab10").colors, strict=False))
     for pairs, style in (("all", "--"), ("selected", "-")):
         sel = sorted(
             (r for r in dome if r["pairs"] == pairs), key=lambda r: r["num_images"]
@@ -197,17 +198,23 @@ def plot(rows: list[dict], path: Path) -> None:
                 [max(r["stages_s"][stage], 1e-3) for r in sel],
                 style,
                 marker="o",
-                label=f"{stage} ({pairs} pairs)",
+                color=colours[stage],
+                label=stage if pairs == "selected" else None,
             )
         ax[1].plot(
             n,
             [r["peak_rss_mib"]["total"] + r["peak_rss_mib"]["workers"] for r in sel],
             style,
             marker="o",
+            color="k",
             label=f"{pairs} pairs",
         )
+    ax[0].plot([], [], "k-", label="selected pairs")
+    ax[0].plot([], [], "k--", label="all pairs")
+    ax[0].set_xticks([16, 32, 64, 128, 256], ["16", "32", "64", "128", "256"])
+    ax[0].minorticks_off()
     ax[0].set(xlabel="images", ylabel="seconds", title="time per stage")
-    ax[0].legend(fontsize=6, ncol=2)
+    ax[0].legend(fontsize=7, ncol=2)
     ax[1].set(xlabel="images", ylabel="MiB", title="peak resident memory")
     ax[1].legend()
     fig.tight_layout()
