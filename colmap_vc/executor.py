@@ -179,7 +179,8 @@ class ProcessExecutor:
 
     def close(self) -> None:
         if self._pool is not None:
-            self._pool.shutdown()
+            # On an error or Ctrl-C the chunks not yet started are dropped.
+            self._pool.shutdown(wait=True, cancel_futures=True)
             self._pool = None
         if self._tmp is not None:
             self._tmp.cleanup()
