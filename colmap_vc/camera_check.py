@@ -109,12 +109,8 @@ def classic_support(
     for image_id, image in rec.images.items():  # loop over images
         if not image.has_pose:
             continue
-        limit = num_classic.get(image_id, 0)
-        out[image_id] = sum(
-            1
-            for k, p in enumerate(image.points2D)  # loop over the classic keypoints
-            if k < limit and p.has_point3D()
-        )
+        idx = np.asarray(image.get_observation_point2D_idxs(), dtype=np.int64)
+        out[image_id] = int((idx < num_classic.get(image_id, 0)).sum())
     return out
 
 

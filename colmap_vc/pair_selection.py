@@ -27,15 +27,13 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from .matching import template_key
+from .meshalign import procrustes
 from .structs import FloatArray, ImagePrior, IndexArray
 
 logger = logging.getLogger(__name__)
 
 MAX_VERTICES = 500  # an even subsample of each mesh is enough for a rotation
-
-
-def _key(faces: np.ndarray) -> tuple[int, int]:
-    return (len(faces), int(faces[: min(len(faces), 64)].sum()))
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -57,24 +55,20 @@ def body_frames(priors: Mapping[str, ImagePrior], names: Sequence[str]) -> BodyF
     rotation = np.tile(np.eye(3), (len(names), max(num, 1), 1, 1))
     to_camera = np.zeros((len(names), max(num, 1), 3))
     topology = np.full((len(names), max(num, 1)), -1, np.int64)
-    reference: dict[tuple[int, int], FloatArray] = {}
-    keys: dict[tuple[int, int], int] = {}
+    reference: dict[str, FloatArray] = {}
+    keys: dict[str, int] = {}
     for i, name in enumerate(names):
         for k, person in enumerate(priors[name].persons):
             v = person.vertices_cam
             rows = np.linspace(0, len(v) - 1, min(len(v), MAX_VERTICES)).astype(int)
             pts = v[rows]
-            key = _key(person.faces)
+            key = template_key(person)
             ref = reference.setdefault(key, pts)
             if len(ref) != len(pts):
                 continue
-            c, c_ref = pts.mean(axis=0), ref.mean(axis=0)
-            # Kabsch: R minimises |R (ref - c_ref) - (pts - c)|; R: body -> camera.
-            u, _, vt = np.linalg.svd((pts - c).T @ (ref - c_ref))
-            d = np.sign(np.linalg.det(u @ vt))
-            R = u @ np.diag([1.0, 1.0, d]) @ vt
-            direction = R.T @ (-c)
-            rotation[i, k] = R
+            T = procrustes(ref, pts)  # body (reference mesh) -> this camera
+            direction = T[:, :3].T @ (-pts.mean(axis=0))
+            rotation[i, k] = T[:, :3]
             to_camera[i, k] = direction / max(np.linalg.norm(direction), 1e-12)
             topology[i, k] = keys.setdefault(key, len(keys))
     return BodyFrames(rotation=rotation, to_camera=to_camera, topology=topology)
