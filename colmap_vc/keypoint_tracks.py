@@ -16,7 +16,7 @@ import numpy as np
 import pycolmap
 
 from . import database
-from .structs import FloatArray, HitKind, IndexArray
+from .structs import BoolArray, FloatArray, HitKind, IndexArray
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -171,12 +171,14 @@ def triangulate_tracks(
 ) -> tuple[FloatArray, IndexArray]:
     """DLT point (T, 3) of each track (the model's poses) and its view count (T,).
 
-    A point behind any of its cameras (or at infinity) is NaN.
+    A point behind any of its cameras (or at infinity) is NaN. Observations in
+    images without a pose (left out by a camera check) do not count.
     """
     num = tracks.num_tracks
     rows = np.zeros((len(tracks.track), 2, 4))
     depth_row = np.zeros((len(tracks.track), 4))  # z of the point in its camera
-    for image_id in np.unique(tracks.image_id):  # loop over images, vectorized over obs
+    posed = observed_in_posed_images(rec, tracks)
+    for image_id in np.unique(tracks.image_id[posed]):  # loop over images
         sel = tracks.image_id == image_id
         image = rec.image(int(image_id))
         T = image.cam_from_world().matrix()
@@ -184,7 +186,7 @@ def triangulate_tracks(
         rows[sel, 0] = uv[:, :1] * T[2] - T[0]
         rows[sel, 1] = uv[:, 1:2] * T[2] - T[1]
         depth_row[sel] = T[2]
-    rows /= np.linalg.norm(rows, axis=2, keepdims=True)
+    rows[posed] /= np.linalg.norm(rows[posed], axis=2, keepdims=True)
     A = np.zeros((num, 4, 4))  # normal equations A^T A per track
     np.add.at(A, tracks.track, np.einsum("oki,okj->oij", rows, rows))
     _, vecs = np.linalg.eigh(A)
@@ -193,11 +195,24 @@ def triangulate_tracks(
     X = X / w[:, None]
     behind = np.zeros(num, dtype=bool)
     np.logical_or.at(
-        behind, tracks.track, np.einsum("oi,oi->o", depth_row, X[tracks.track]) <= 0
+        behind,
+        tracks.track[posed],
+        np.einsum("oi,oi->o", depth_row[posed], X[tracks.track[posed]]) <= 0,
     )
     X[behind] = np.nan
-    counts = np.bincount(tracks.track, minlength=num)
+    counts = np.bincount(tracks.track[posed], minlength=num)
     return X[:, :3], counts
+
+
+def observed_in_posed_images(
+    rec: pycolmap.Reconstruction, tracks: KeypointTracks
+) -> BoolArray:
+    """(O,) whether each observation's image is in ``rec`` with a pose."""
+    ids = np.unique(tracks.image_id)
+    ok = np.array(
+        [int(i) in rec.images and rec.image(int(i)).has_pose for i in ids], dtype=bool
+    )
+    return ok[np.searchsorted(ids, tracks.image_id)]
 
 
 def loss_scale_px(
@@ -279,11 +294,13 @@ def add_keypoint_points(
     enough; returns (added per track, views per track)."""
     X, counts = triangulate_tracks(rec, tracks)
     good = (counts >= min_track_length) & np.isfinite(X).all(axis=1)
+    posed = observed_in_posed_images(rec, tracks)
     starts = np.searchsorted(tracks.track, np.arange(tracks.num_tracks))
     ends = np.r_[starts[1:], len(tracks.track)]
     for t in np.flatnonzero(good):  # loop over tracks: pycolmap's API adds one point
         track = pycolmap.Track()
         for o in range(starts[t], ends[t]):
-            track.add_element(int(tracks.image_id[o]), int(tracks.point2D_idx[o]))
+            if posed[o]:
+                track.add_element(int(tracks.image_id[o]), int(tracks.point2D_idx[o]))
         rec.add_point3D(X[t], track)
     return good, counts

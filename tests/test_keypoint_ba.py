@@ -14,6 +14,7 @@ from colmap_vc.evaluation import evaluate_reconstruction
 from colmap_vc.keypoint_ba import KeypointBaOptions, keypoint_bundle_adjustment
 from colmap_vc.keypoint_tracks import (
     KeypointTracks,
+    add_keypoint_points,
     keypoint_tracks,
     mirrored_tracks,
     person_identities,
@@ -76,6 +77,31 @@ def test_identity_tracks_triangulate_consistently(mapped):
         xy = np.asarray(rec.camera(image.camera_id).img_from_cam(pc))
         err.append(np.linalg.norm(xy - tracks.xy_img[sel], axis=1))
     assert (counts >= 2).all() and np.median(np.concatenate(err)) < 2.0
+
+
+def test_a_left_out_camera_no_longer_counts_in_keypoint_tracks(mapped):
+    """A camera check that leaves an image out (deregisters it) and then re-adds
+    keypoint points: the left-out image neither triangulates nor observes them
+    (its frame has no pose; reading it raised in pycolmap, seen at 128 images)."""
+    db, rec = mapped
+    rec = pycolmap.Reconstruction(rec)
+    registered = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
+    tracks = keypoint_tracks(db, registered)
+    X_all, counts_all = triangulate_tracks(rec, tracks)
+    gone = int(registered[0])
+    for point_id in list(rec.point3D_ids()):
+        rec.delete_point3D(point_id)
+    rec.deregister_frame(rec.image(gone).frame_id)
+    X, counts = triangulate_tracks(rec, tracks)
+    seen = np.bincount(tracks.track[tracks.image_id == gone], minlength=len(counts))
+    assert np.array_equal(counts, counts_all - seen)
+    good, _ = add_keypoint_points(rec, tracks, min_track_length=2)
+    assert good.any() and rec.num_points3D() == int(good.sum())
+    assert all(
+        e.image_id != gone for p in rec.points3D.values() for e in p.track.elements
+    )
+    kept = (counts == counts_all) & np.isfinite(X_all).all(axis=1)
+    assert np.allclose(X[kept], X_all[kept])
 
 
 def test_keypoint_ba_pulls_perturbed_poses_back(dome_scene, mapped, rng):
