@@ -79,9 +79,14 @@ class AugmentOptions:
     VCs to every pair)."""
     association: AssociationOptions = field(default_factory=AssociationOptions)
     """How anonymous people are associated across views (colmap_vc.association)."""
-    max_link_vcs: int = 400
+    max_link_vcs: int = 100
     """VCs per person link verified on their own when associating (an even
-    subsample: the inlier ratio needs no more)."""
+    subsample). The link's inlier ratio enters the association through a log term
+    whose slope is about 1 (association._unary): at 100 VCs its binomial noise is
+    0.03 (ratios 0.88 on right and wrong links alike), a hundredth of a nat against
+    the 0.25 margin a link must win by; its one-person pose differs from the
+    400-VC pose by a median 15 deg, inside the 45 deg pose noise the association
+    assumes. A link costs 5 ms instead of 14 (bench/scale.py, "link")."""
     max_classic_disagreement_deg: float = 20.0
     """Classic matches join a pair's verification only when their own relative pose
     agrees with the VCs' within this (else a few spurious SIFT inliers could steer

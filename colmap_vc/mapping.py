@@ -210,7 +210,7 @@ def _map_copy(
             if options.show_progress:
                 logger.info("registered image %d/%d", registered[0] + 2, len(mapped))
 
-        pipeline = incremental_options(options)
+        pipeline = incremental_options(options, len(mapped))
         if static is not None:
             pipeline.image_names = mapped  # one view per static camera
         models = pycolmap.incremental_mapping(

@@ -57,7 +57,7 @@ def mesh_initialised(
                 ),
                 pycolmap.Rigid3d(pycolmap.Rotation3d(T[:, :3]), T[:, 3]),
             )
-    pipeline = incremental_options(options)
+    pipeline = incremental_options(options, len(poses))
     # The initial poses are coarse: triangulate generously, let BA tighten.
     pipeline.triangulation.complete_max_reproj_error = (
         4 * options.filter_max_reproj_error_px

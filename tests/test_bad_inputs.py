@@ -693,11 +693,16 @@ def test_sigterm_leaves_the_database_and_says_so(
         [sys.executable, "-m", "colmap_vc.cli", *_augment(project)],
         stdout=subprocess.PIPE,
         stderr=subprocess.STDOUT,
-        text=True,
     )
-    time.sleep(4.0)  # imports done, VCs being computed
+    assert proc.stdout is not None
+    seen = b""
+    while b"observe" not in seen:  # imports done, the VCs being computed
+        chunk = os.read(proc.stdout.fileno(), 4096)
+        assert chunk, seen.decode()
+        seen += chunk
     proc.send_signal(signal.SIGTERM)
-    output, _ = proc.communicate(timeout=60)
+    rest, _ = proc.communicate(timeout=60)
+    output = (seen + rest).decode()
     assert proc.returncode == 143, output
     assert "SIGTERM" in output and "unchanged" in output, output
     assert "Traceback" not in output and "@ 0x" not in output, output
