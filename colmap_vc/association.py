@@ -177,26 +177,45 @@ def _unary(
     return score - 0.5 * (d_h / options.height_sigma_m) ** 2
 
 
-def _layout_error(a1: PersonCue, b1: PersonCue, a2: PersonCue, b2: PersonCue) -> float:
-    """Where a1 -> a2's mesh alignment puts b1, against b2 (and the reverse), as a
-    fraction of the people's mean distance from the cameras."""
-    depth = np.mean(
-        [np.linalg.norm(c.vertices_cam.mean(axis=0)) for c in (a1, b1, a2, b2)]
+@dataclass(frozen=True, slots=True)
+class _LinkGeometry:
+    """One link's mesh alignment, computed once per link (not per pair of links)."""
+
+    motion: FloatArray | None  # (3, 4) person 1's mesh onto person 2's; None: the
+    # two meshes have different topologies
+    centre1: FloatArray  # (3,) person 1's mesh centroid, camera 1
+    centre2: FloatArray  # (3,) person 2's mesh centroid, camera 2
+
+
+def _link_geometry(c1: PersonCue, c2: PersonCue) -> _LinkGeometry:
+    v1, v2 = c1.vertices_cam, c2.vertices_cam
+    return _LinkGeometry(
+        motion=procrustes(v1, v2) if len(v1) == len(v2) else None,
+        centre1=v1.mean(axis=0),
+        centre2=v2.mean(axis=0),
     )
-    errs = []
-    for (p, q), (r, s) in (((a1, a2), (b1, b2)), ((b1, b2), (a1, a2))):
-        if len(p.vertices_cam) != len(q.vertices_cam):
-            return math.nan
-        T = procrustes(p.vertices_cam, q.vertices_cam)
-        moved = T[:, :3] @ r.vertices_cam.mean(axis=0) + T[:, 3]
-        errs.append(float(np.linalg.norm(moved - s.vertices_cam.mean(axis=0))))
+
+
+def _layout_error(g1: _LinkGeometry, g2: _LinkGeometry) -> float:
+    """Where link 1's mesh alignment puts link 2's person, against its partner (and
+    the reverse), as a fraction of the people's mean distance from the cameras."""
+    if g1.motion is None or g2.motion is None:
+        return math.nan
+    depth = np.mean(
+        [np.linalg.norm(c) for c in (g1.centre1, g2.centre1, g1.centre2, g2.centre2)]
+    )
+    errs = [
+        float(np.linalg.norm(T[:, :3] @ other.centre1 + T[:, 3] - other.centre2))
+        for T, other in ((g1.motion, g2), (g2.motion, g1))
+    ]
     return 0.5 * (errs[0] + errs[1]) / max(float(depth), 1e-6)
 
 
 def _pairwise(
     l1: LinkEvidence,
     l2: LinkEvidence,
-    cues: Mapping[PersonKey, PersonCue],
+    g1: _LinkGeometry,
+    g2: _LinkGeometry,
     options: AssociationOptions,
 ) -> float:
     """Log-likelihood ratio that two non-conflicting links of one pair share one
@@ -211,12 +230,7 @@ def _pairwise(
         )
         w = options.pose_inlier_prob
         k += math.log(w * ratio + (1.0 - w))
-    e = _layout_error(
-        cues[(l1.image_name1, l1.person1)],
-        cues[(l2.image_name1, l2.person1)],
-        cues[(l1.image_name2, l1.person2)],
-        cues[(l2.image_name2, l2.person2)],
-    )
+    e = _layout_error(g1, g2)
     if math.isfinite(e):
         k += _half_normal_vs_uniform(
             e, options.layout_sigma_frac, options.layout_range_frac
@@ -283,6 +297,12 @@ def _pair_links(
             for lk in links
         ]
     )
+    geometry = [
+        _link_geometry(
+            cues[(lk.image_name1, lk.person1)], cues[(lk.image_name2, lk.person2)]
+        )
+        for lk in links
+    ]
     conflict = np.eye(n, dtype=bool)
     pairwise = np.zeros((n, n))
     for i in range(n):  # loop over person links (a few per pair), not matches
@@ -291,7 +311,7 @@ def _pair_links(
                 conflict[i, j] = conflict[j, i] = True
             else:
                 pairwise[i, j] = pairwise[j, i] = _pairwise(
-                    links[i], links[j], cues, options
+                    links[i], links[j], geometry[i], geometry[j], options
                 )
     hyps = _hypotheses(unary, pairwise, conflict)
     margin = np.zeros(n)
