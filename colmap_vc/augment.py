@@ -17,7 +17,7 @@ import numpy as np
 import pycolmap
 from tqdm import tqdm
 
-from . import __version__, database
+from . import __version__, database, outputs
 from .association import AssociationOptions, LinkEvidence, PersonCue, associate
 from .executor import ExecutorKind, ExecutorOptions, check_options, open_executor
 from .matching import (
@@ -460,7 +460,7 @@ def run(
             run_info={
                 "colmap_vc_version": __version__,
                 "priors": str(Path(priors_path).resolve()),
-                "options": _jsonable(asdict(options)),
+                "options": outputs.jsonable(asdict(options)),
             },
         )
         timings["write"] = time.perf_counter() - t0
@@ -486,13 +486,3 @@ def run(
         sum(p.num_inliers for p in summary.pairs),
     )
     return summary
-
-
-def _jsonable(value: object) -> object:
-    if isinstance(value, dict):
-        return {k: _jsonable(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_jsonable(v) for v in value]
-    if isinstance(value, (str, int, float, bool)) or value is None:
-        return value
-    return str(value)

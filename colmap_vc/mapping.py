@@ -8,6 +8,8 @@ Options: :mod:`colmap_vc.mapping_options`; starts from the meshes:
 
 from __future__ import annotations
 
+import dataclasses
+import json
 import logging
 import shutil
 import tempfile
@@ -17,7 +19,7 @@ from pathlib import Path
 
 import pycolmap
 
-from . import canonical, database, outputs
+from . import __version__, canonical, database, outputs
 from .camera_check import classic_support
 from .keypoint_ba import keypoint_bundle_adjustment, with_loss_scale
 from .keypoint_tracks import bundle_adjust_inplace
@@ -47,6 +49,7 @@ from .static_cameras import StaticCameras, parse_static_cameras
 
 __all__ = [
     "COLMAP_DEFAULTS",
+    "OPTIONS_FILE",
     "OUTPUT_MARKER",
     "Mapper",
     "MappingOptions",
@@ -111,7 +114,9 @@ def run(
     overwrite: bool = False,
     priors_path: Path | None = None,
 ) -> tuple[pycolmap.Reconstruction, MappingSummary]:
-    """Map a database; the models go to ``output_dir/<k>``, the largest is returned.
+    """Map a database; the final model goes to ``output_dir/0`` (with the options it
+    was made with, :data:`OPTIONS_FILE`) and is returned; smaller models of image
+    groups it could not join follow at ``output_dir/1``, ....
 
     Raises:
         FileNotFoundError: the database or image folder is missing.
@@ -150,6 +155,11 @@ def run(
             if (folder / "images.bin").is_file():
                 canonical.relabel(pycolmap.Reconstruction(folder), *ids).write(folder)
         rec = canonical.relabel(rec, *ids)
+    model_dir = _number_models(output_dir, summary.model_dir)
+    _write_run_options(
+        model_dir, options, database_path, image_dir, priors_path, summary
+    )
+    summary = dataclasses.replace(summary, model_dir=model_dir)
     logger.info(
         "mapping: %d model(s); the largest registers %d/%d images (%.1f s)",
         summary.num_models,
@@ -340,6 +350,56 @@ def _map_copy(
         timings_s=timings,
     )
     return best, summary
+
+
+OPTIONS_FILE = "map_options.json"
+"""Beside the final model: the options and inputs `map` ran with."""
+
+
+def _number_models(output_dir: Path, best: Path | None) -> Path:
+    """The final model at ``output_dir/0``, as COLMAP numbers its first; smaller
+    models of other image groups (several components) follow at 1, 2, ... by size.
+
+    The mappers name their folders by their own order ("0", "1", ...; "mesh" for
+    the mesh-initialised one), and a superseded model is already removed.
+    """
+    folders = sorted(p for p in output_dir.iterdir() if (p / "images.bin").is_file())
+    if best is None or best not in folders:
+        return output_dir / "0"
+    size = {p: pycolmap.Reconstruction(p).num_reg_images() for p in folders}
+    others = sorted((p for p in folders if p != best), key=lambda p: (-size[p], p.name))
+    order = [best, *others]
+    staged = []
+    for k, folder in enumerate(order):  # two steps: "1" may become "0" and back
+        tmp = output_dir / f".model-{k}"
+        folder.rename(tmp)
+        staged.append(tmp)
+    for k, tmp in enumerate(staged):
+        tmp.rename(output_dir / str(k))
+    return output_dir / "0"
+
+
+def _write_run_options(
+    model_dir: Path,
+    options: MappingOptions,
+    database_path: Path,
+    image_dir: Path,
+    priors_path: Path | None,
+    summary: MappingSummary,
+) -> None:
+    """What this model was made from and with, beside it (:data:`OPTIONS_FILE`)."""
+    record = {
+        "colmap_vc_version": __version__,
+        "pycolmap_version": pycolmap.__version__,
+        "database": str(database_path.resolve()),
+        "image_path": str(image_dir.resolve()),
+        "priors": None if priors_path is None else str(Path(priors_path).resolve()),
+        "options": outputs.jsonable(dataclasses.asdict(options)),
+        "registered": summary.num_registered,
+        "images": summary.num_images,
+        "timings_s": summary.timings_s,
+    }
+    (model_dir / OPTIONS_FILE).write_text(json.dumps(record, indent=1) + "\n")
 
 
 OUTPUT_MARKER = outputs.marker_name("map")

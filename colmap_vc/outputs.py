@@ -13,7 +13,7 @@ from collections.abc import Sequence
 from os import PathLike
 from pathlib import Path
 
-__all__ = ["marker_name", "prepare_output_dir"]
+__all__ = ["jsonable", "marker_name", "prepare_output_dir"]
 
 
 def marker_name(command: str) -> str:
@@ -64,3 +64,14 @@ def prepare_output_dir(
         "replace this folder\n"
     )
     return out
+
+
+def jsonable(value: object) -> object:
+    """``value`` (dicts, lists, numbers, text; anything else as text) for json.dump."""
+    if isinstance(value, dict):
+        return {k: jsonable(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [jsonable(v) for v in value]
+    if isinstance(value, (str, int, float, bool)) or value is None:
+        return value
+    return str(value)

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import json
 import shutil
 import sqlite3
 
@@ -49,6 +50,10 @@ def test_augmented_dome_registers_every_image_accurately(
     ratio = camera_distance_ratio(poses_by_name(rec), poses_by_name(gt))
     assert summary.metric_scale is not None and abs(ratio - 1.0) < 0.03, ratio
     assert (summary.model_dir / "metric_scale.json").exists()
+    assert summary.model_dir == tmp_path / "sparse" / "0"
+    ran = json.loads((summary.model_dir / mapping.OPTIONS_FILE).read_text())
+    assert ran["options"]["num_threads"] == 2 and ran["registered"] == 6
+    assert ran["database"] == str(augmented.resolve())
 
 
 def test_a_plain_database_maps_as_plain_colmap_and_says_why(dome_scene, tmp_path):
@@ -106,7 +111,11 @@ def test_without_verified_pairs_meshes_and_keypoint_tracks_still_register(
     )
     assert summary.num_registered == 6
     models = sorted(p.name for p in (tmp_path / "sparse").iterdir())
-    assert models == [mapping.OUTPUT_MARKER, "mesh"]  # one answer, no superseded
+    # The mesh-initialised model replaced the incremental one: one answer, at 0/
+    # as COLMAP names it, no superseded model beside it.
+    assert models == [mapping.OUTPUT_MARKER, "0"] and summary.model_dir.name == "0"
+    ran = json.loads((summary.model_dir / mapping.OPTIONS_FILE).read_text())
+    assert ran["options"]["mapper"] == "auto" and ran["registered"] == 6
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     mesh_only = evaluate_poses(
         mesh_alignment_poses(read_priors(dome_scene / "priors")), poses_by_name(gt)
