@@ -34,6 +34,7 @@ import realdata
 from common import DOCS, OUT, ROOT, machine, replace_section, setup_logging, write_json
 
 from colmap_vc import augment, mapping
+from colmap_vc.baselines import colmap_incremental
 from colmap_vc.evaluation import (
     THRESHOLDS_DEG,
     Metrics,
@@ -111,14 +112,14 @@ def run_method(
                 min_num_vcs=8 if few else augment.AugmentOptions().min_num_vcs,
             ),
         )
-    options = (
-        mapping.COLMAP_DEFAULTS
-        if priors_dir is None
-        else (FEW["mapping"] if few else mapping.MappingOptions(show_progress=False))
-    )
-    options = replace(options, seed=seed)
     shutil.rmtree(work / "sparse", ignore_errors=True)  # the bench's own output
-    rec, _ = mapping.run_incremental(run_db, DATA / "images", work / "sparse", options)
+    if priors_dir is None:  # classic: COLMAP itself
+        rec = colmap_incremental(run_db, DATA / "images", work / "sparse", seed)
+    else:
+        options = FEW["mapping"] if few else mapping.MappingOptions(show_progress=False)
+        rec, _ = mapping.run_incremental(
+            run_db, DATA / "images", work / "sparse", replace(options, seed=seed)
+        )
     pred = (
         {}
         if rec is None

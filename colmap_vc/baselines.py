@@ -10,32 +10,50 @@ from pathlib import Path
 import pycolmap
 
 from .evaluation import Metrics, evaluate_reconstruction
-from .mapping import COLMAP_DEFAULTS, MappingOptions, run_incremental
 from .meshalign import mesh_alignment, mesh_alignment_poses, procrustes
 
 logger = logging.getLogger(__name__)
 
-__all__ = ["mesh_alignment", "mesh_alignment_poses", "procrustes", "run_classic"]
+__all__ = [
+    "colmap_incremental",
+    "mesh_alignment",
+    "mesh_alignment_poses",
+    "procrustes",
+    "run_classic",
+]
+
+
+def colmap_incremental(
+    database_path: Path, image_dir: Path, output_dir: Path, seed: int = 0
+) -> pycolmap.Reconstruction | None:
+    """COLMAP itself: pycolmap's incremental mapper with COLMAP's default options
+    (one thread and a fixed seed, so that a run repeats), on a copy of the database.
+
+    No colmap-vc step runs: not its two-view start for two images, not its checks,
+    not its image renumbering. Returns the model with the most registered images,
+    or None when COLMAP finds none.
+    """
+    output_dir.mkdir(parents=True, exist_ok=True)
+    copy = output_dir / "database.db"  # the mapper may migrate the schema
+    shutil.copyfile(database_path, copy)
+    pycolmap.set_random_seed(seed)
+    options = pycolmap.IncrementalPipelineOptions(num_threads=1, random_seed=seed)
+    models = pycolmap.incremental_mapping(copy, image_dir, output_dir, options=options)
+    copy.unlink()
+    if not models:
+        return None
+    return models[max(models, key=lambda k: (models[k].num_reg_images(), -k))]
 
 
 def run_classic(
-    scene_dir: Path, work_dir: Path, options: MappingOptions | None = None
+    scene_dir: Path, work_dir: Path
 ) -> tuple[pycolmap.Reconstruction | None, Metrics]:
-    """Classic COLMAP on a synthetic scene: its SIFT database, incremental mapping.
-
-    The scene's database is copied first, so the scene stays untouched.
-    """
-    work_dir.mkdir(parents=True, exist_ok=True)
-    db = work_dir / "classic.db"
-    shutil.copyfile(scene_dir / "database.db", db)
+    """Classic COLMAP on a synthetic scene: its SIFT database, COLMAP's incremental
+    mapping (:func:`colmap_incremental`). The scene stays untouched."""
     gt = pycolmap.Reconstruction(scene_dir / "gt" / "sparse")
-    rec, _ = run_incremental(
-        db,
-        scene_dir / "images",
-        work_dir / "classic",
-        options or COLMAP_DEFAULTS,
-        num_images=gt.num_images(),
-    )
+    out = work_dir / "classic"
+    shutil.rmtree(out, ignore_errors=True)
+    rec = colmap_incremental(scene_dir / "database.db", scene_dir / "images", out)
     metrics = evaluate_reconstruction(rec, gt)
     logger.info(
         "classic COLMAP: %d/%d registered, AUC@15/30/45 = %.1f / %.1f / %.1f",

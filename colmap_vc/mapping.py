@@ -25,7 +25,6 @@ from .keypoint_ba import keypoint_bundle_adjustment, with_loss_scale
 from .keypoint_tracks import bundle_adjust_inplace
 from .mapping_init import mesh_initialised, two_view_initialised
 from .mapping_options import (
-    COLMAP_DEFAULTS,
     Mapper,
     MappingOptions,
     MappingSummary,
@@ -48,7 +47,6 @@ from .metric_scale import (
 from .static_cameras import StaticCameras, parse_static_cameras
 
 __all__ = [
-    "COLMAP_DEFAULTS",
     "OPTIONS_FILE",
     "OUTPUT_MARKER",
     "Mapper",
@@ -193,7 +191,7 @@ def _map_copy(
     priors = load_priors(database_path, priors_path, views.image_names, static)
     timings = {"read": time.perf_counter() - t0}
     lap = time.perf_counter()
-    if len(mapped) == 2 and options.mapper in (Mapper.AUTO, Mapper.INCREMENTAL):
+    if len(mapped) == 2 and options.mapper is Mapper.AUTO:
         rec = two_view_initialised(
             database_path, image_dir, output_dir / "0", options, priors
         )

@@ -37,7 +37,9 @@ class MappingOptions:
     camera poses the predicted meshes give (mesh alignment); when it contradicts them
     (a mirrored two-view start, typical with one person) or registers fewer images
     than the meshes can place, the mesh-initialised mapper replaces it (if it does
-    better). incremental / global (GLOMAP) / mesh force one mapper."""
+    better); two images start from their verified two-view geometry instead.
+    incremental (COLMAP's, also for two images) / global (GLOMAP) / mesh force
+    one mapper."""
     max_prior_deviation_deg: float = 35.0
     """auto: largest median rotation difference to the mesh prior that is accepted."""
     max_image_prior_deviation_deg: float = 90.0
@@ -124,17 +126,6 @@ class MappingSummary:
     def num_registered(self) -> int:
         """Images in the largest model."""
         return len(self.registered)
-
-
-# COLMAP's own defaults, for the classic baseline.
-COLMAP_DEFAULTS = MappingOptions(
-    mapper=Mapper.INCREMENTAL,
-    min_model_size=10,
-    init_min_num_inliers=100,
-    init_min_tri_angle_deg=16.0,
-    filter_max_reproj_error_px=4.0,
-    light_ba_from_images=None,
-)
 
 
 def incremental_options(

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import hashlib
 import json
 import shutil
 import sqlite3
@@ -10,6 +11,7 @@ import pycolmap
 import pytest
 
 from colmap_vc import augment, mapping
+from colmap_vc.baselines import colmap_incremental
 from colmap_vc.evaluation import (
     camera_distance_ratio,
     evaluate_poses,
@@ -228,3 +230,26 @@ def test_a_two_view_geometry_stored_without_its_pose_gets_one() -> None:
     assert pose is not None
     rot_err, t_err = relative_pose_error(pose, np.c_[R, t / np.linalg.norm(t)])
     assert rot_err < 0.1 and t_err < 0.1
+
+
+def test_the_classic_baseline_is_colmap_itself(dome_scene, tmp_path):
+    """`colmap_incremental` is COLMAP's mapper at its defaults: no colmap-vc step,
+    the scene's database untouched, the same model pycolmap gives by itself."""
+    db = dome_scene / "database.db"
+    before = hashlib.sha256(db.read_bytes()).hexdigest()
+    rec = colmap_incremental(db, dome_scene / "images", tmp_path / "classic")
+    assert hashlib.sha256(db.read_bytes()).hexdigest() == before
+    assert sorted(p.name for p in (tmp_path / "classic").iterdir()) == sorted(
+        str(k) for k in range(len(list((tmp_path / "classic").iterdir())))
+    )  # COLMAP's numbered models only: no colmap-vc marker, options or copy
+    copy = tmp_path / "copy.db"
+    shutil.copyfile(db, copy)
+    pycolmap.set_random_seed(0)
+    models = pycolmap.incremental_mapping(
+        copy,
+        dome_scene / "images",
+        tmp_path / "direct",
+        options=pycolmap.IncrementalPipelineOptions(num_threads=1, random_seed=0),
+    )
+    own = max((m.num_reg_images() for m in models.values()), default=0)
+    assert (0 if rec is None else rec.num_reg_images()) == own
