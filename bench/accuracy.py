@@ -8,7 +8,8 @@ alike on odd seeds), and are also run with the true ids given ("ids given": the 
 scenes and priors with gt/persons.json's ids added), the upper bound of the
 association. Methods:
 
-- classic COLMAP: SIFT, exhaustive matching, incremental mapping (COLMAP defaults);
+- classic COLMAP: SIFT, exhaustive matching, COLMAP's incremental mapper at its
+  defaults with the known intrinsics fixed (baselines.colmap_incremental);
 - mesh alignment: Procrustes between the predicted meshes of the same person;
 - VC init: VCs only, registration and triangulation without COLMAP's BA;
 - VC + BA: VCs only, pycolmap incremental mapping (COLMAP's BA);
@@ -78,7 +79,10 @@ METHODS = (
 
 
 LEGEND = [
-    "Methods: *classic COLMAP* (SIFT, exhaustive matching, COLMAP's mapper); *mesh "
+    "Methods: *classic COLMAP* (SIFT, exhaustive matching, COLMAP's incremental "
+    "mapper at its defaults with the known intrinsics fixed: COLMAP itself, "
+    "`baselines.colmap_incremental`; with two images it needs an initial pair of "
+    "100 inliers and 16 deg triangulation angle); *mesh "
     "alignment* (Procrustes between the predicted meshes); *VC init* (VCs only, "
     "registration and triangulation without BA); *VC + BA* (pycolmap's mapper with "
     "its BA); *VC + keypoint BA* (then the keypoint bundle adjustment: what "
