@@ -443,11 +443,11 @@ def run_incremental(
     image_dir: Path,
     output_dir: Path,
     options: MappingOptions | None = None,
-    num_images: int | None = None,
 ) -> tuple[pycolmap.Reconstruction | None, MappingSummary | None]:
     """Like :func:`run` but returns (None, None) instead of raising when no model.
 
-    Used by baselines, where a failure is a result to report.
+    Used by the benchmarks and the demo's variants, where a failure is a result to
+    report.
     """
     try:
         return run(database_path, image_dir, output_dir, options, overwrite=True)
