@@ -14,9 +14,9 @@ association. Methods:
 - VC init: VCs only, registration and triangulation without COLMAP's BA;
 - VC + BA: VCs only, pycolmap incremental mapping (COLMAP's BA);
 - VC + keypoint BA: then the keypoint bundle adjustment (`colmap-vc map`'s default);
-- VC + GBA: the mapper's model, then the generalized bundle adjustment;
+- VC + GBA: the generalized bundle adjustment instead (`map --gba`, docs/gba.md);
 - VC + classic + keypoint BA: VCs verified jointly with the classic matches, `map`;
-- VC + classic + GBA: the same, the mapper's model refined by GBA instead.
+- VC + classic + GBA: the same, with `map --gba`.
 
     .venv/bin/python bench/accuracy.py [--seeds 0 1 2] [--quick]
         [--groups "dome, 3 people"] [--cameras 8] [--no-docs]
@@ -50,6 +50,7 @@ from colmap_vc.evaluation import (
     pose_auc,
     poses_by_name,
 )
+from colmap_vc.keypoint_ba import KeypointBaOptions
 from colmap_vc.priors import read_priors
 from colmap_vc.synthetic import SynthOptions, generate
 from colmap_vc.synthetic.gt import (
@@ -86,19 +87,12 @@ LEGEND = [
     "alignment* (Procrustes between the predicted meshes); *VC init* (VCs only, "
     "registration and triangulation without BA); *VC + BA* (pycolmap's mapper with "
     "its BA); *VC + keypoint BA* (then the keypoint bundle adjustment: what "
-    "`colmap-vc map` does); *VC + GBA* (the mapper's model, then the generalized BA: "
-    "`map --no-keypoint-ba --gba`); *+ classic*: VCs verified together with the SIFT "
+    "`colmap-vc map` does); *VC + GBA* (`map --gba`: the generalized BA instead, "
+    "every surface VC a track by identity and each person's observations weighted "
+    "by their noise, docs/gba.md); *+ classic*: VCs verified together with the SIFT "
     "matches.",
     "",
 ]
-
-
-def _gba_available() -> bool:
-    try:
-        from colmap_vc import refine  # noqa: F401
-    except ImportError:
-        return False
-    return True
 
 
 def scene(
@@ -199,13 +193,12 @@ def run_vc(
         scene_dir / "images",
         work / "sparse",
         mapping.MappingOptions(
-            bundle_adjustment=ba, keypoint_ba=kba, show_progress=False
+            bundle_adjustment=ba,
+            keypoint_ba=kba or gba,
+            keypoint_ba_options=KeypointBaOptions(surface_tracks=gba),
+            show_progress=False,
         ),
     )
-    if rec is not None and gba:
-        from colmap_vc.refine import refine_model
-
-        rec = refine_model(db, rec, work / "refined").reconstruction
     return rec, augment_s
 
 
@@ -221,18 +214,14 @@ def evaluate_scene(
         "classic COLMAP": classic,
         "mesh alignment": evaluate_poses(mesh_alignment_poses(priors), gt_poses),
     }
-    has_gba = _gba_available()
     arms = {
         "VC init": (False, False, False, False),
         "VC + BA": (False, True, False, False),
         "VC + keypoint BA": (False, True, True, False),
+        "VC + GBA": (False, True, False, True),
         "VC + classic + keypoint BA": (True, True, True, False),
+        "VC + classic + GBA": (True, True, False, True),
     }
-    if has_gba:
-        arms |= {
-            "VC + GBA": (False, True, False, True),
-            "VC + classic + GBA": (True, True, False, True),
-        }
     augment_s: dict[str, float] = {}
     augmented: dict[bool, tuple[Path, float]] = {}
     for name, (with_classic, ba, kba, gba) in arms.items():

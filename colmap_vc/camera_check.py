@@ -8,6 +8,7 @@ people's left and right exchanged) or left out, with the reason.
 from __future__ import annotations
 
 import logging
+from collections.abc import Callable
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -16,7 +17,6 @@ import pycolmap
 from .keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
-    bundle_adjust_inplace,
     delete_points_observing,
     keypoint_observations,
     loss_scale_px,
@@ -118,6 +118,7 @@ def check_cameras_inplace(
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
     options: KeypointBaOptions,
+    adjust: Callable[[pycolmap.Reconstruction], object],
     *,
     mirror: dict[int, int] | None = None,
     num_classic: dict[int, int] | None = None,
@@ -138,8 +139,9 @@ def check_cameras_inplace(
     camera is left out. A camera that classic keypoints place
     (``min_classic_support`` model points) is a witness, never judged: there the
     people are what is wrong. Needs 4+ cameras (with 3, two cameras always agree
-    with each other). Cameras are visited in name order, worst first. Returns (re-posed
-    names, left out: reason, re-posed with left/right exchanged).
+    with each other). Cameras are visited in name order, worst first; ``adjust``
+    bundle-adjusts the model after each change. Returns (re-posed names, left out:
+    reason, re-posed with left/right exchanged).
     """
     relocalised: list[str] = []
     left_out: dict[str, str] = {}
@@ -204,7 +206,7 @@ def check_cameras_inplace(
                 typical,
             )
             relocalised.append(name)
-            bundle_adjust_inplace(rec, scale_px)
+            adjust(rec)
             continue
         swapped = relabelled(tracks, worst, partner)
         check = best_two_view_check(
@@ -256,5 +258,5 @@ def check_cameras_inplace(
             )
             logger.warning("camera check: %s %s", name, left_out[name])
             rec.deregister_frame(image.frame_id)
-        bundle_adjust_inplace(rec, scale_px)
+        adjust(rec)
     return relocalised, left_out, mirrored

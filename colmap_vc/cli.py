@@ -8,6 +8,7 @@ Exit codes (README.md): 0 success, 1 the input or a file did not allow the run,
 
 from __future__ import annotations
 
+import dataclasses
 import errno
 import json
 import logging
@@ -164,7 +165,7 @@ class Map:
     image_path: Path
     """Image folder."""
     output_path: Path
-    """Output folder for the models (<k>/ per model; refined/ after --gba)."""
+    """Output folder for the models (<k>/ per model; the final one is 0/)."""
     priors: Path | None = None
     """Priors (default: those `augment` recorded); the auto mapper checks its model
     against the meshes and the mesh mapper starts from them."""
@@ -172,9 +173,10 @@ class Map:
         default_factory=MappingOptions
     )
     gba: bool = False
-    """Also run the generalized bundle adjustment with the VC tuples (into refined/).
-    Off by default: after the keypoint BA it made every synthetic dome scene worse
-    (docs/results.md, VC + keypoint BA against VC + GBA)."""
+    """Refine with the generalized BA (every surface VC as a track by identity, each
+    person's observations weighted by their noise estimated per image) instead of
+    the keypoint BA's fixed budget of surface VCs. Off by default: it loses on the
+    3-person domes and on pose2sim (docs/gba.md)."""
     overwrite: bool = False
     """Replace an OUTPUT_PATH that `map` wrote before (it holds a .colmap-vc-map
     marker); a folder colmap-vc did not write, or one holding the database, images or
@@ -393,11 +395,19 @@ def _run_augment(cmd: Augment) -> int:
 def _run_map(cmd: Map) -> int:
     from .mapping import run
 
-    rec, summary = run(
+    options = cmd.options
+    if cmd.gba:
+        options = dataclasses.replace(
+            options,
+            keypoint_ba_options=dataclasses.replace(
+                options.keypoint_ba_options, surface_tracks=True
+            ),
+        )
+    _, summary = run(
         cmd.database,
         cmd.image_path,
         cmd.output_path,
-        cmd.options,
+        options,
         overwrite=cmd.overwrite,
         priors_path=cmd.priors,
     )
@@ -407,10 +417,6 @@ def _run_map(cmd: Map) -> int:
     )
     for name, reason in summary.unregistered.items():
         sys.stdout.write(f"  not registered: {name}: {reason}\n")
-    if cmd.gba:
-        from .refine import refine_model
-
-        refine_model(cmd.database, rec, cmd.output_path / "refined")
     return 0
 
 

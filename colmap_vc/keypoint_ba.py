@@ -29,13 +29,17 @@ import pycolmap
 
 from . import database
 from .camera_check import check_cameras_inplace
+from .gba.ceres import bundle_adjust_inplace
+from .gba.noise import cluster_noise
 from .keypoint_tracks import (
+    KeypointTracks,
     add_keypoint_points,
-    bundle_adjust_inplace,
     delete_points_observing,
     keypoint_observations,
     keypoint_tracks,
     loss_scale_px,
+    surface_tracks,
+    triangulate_tracks,
 )
 
 logger = logging.getLogger(__name__)
@@ -68,6 +72,20 @@ class KeypointBaOptions:
     (2 observations each) barely constrain the relative pose and the surface VCs
     condition it (synthetic two-view scenes, realistic priors: AUC@15 20.8 with 6,
     34.5 with 24; docs/results.md)."""
+    surface_tracks: bool = False
+    """The generalized BA (``map --gba``): every surface VC joins its track by
+    identity (person, template sample: one X1 shared by all views), and every
+    keypoint and surface observation is weighted by the noise of its (image,
+    person) cluster, estimated from the data (:mod:`colmap_vc.gba.noise`), instead
+    of the fixed budget ``surface_per_image`` under one loss. Off by default: it
+    loses to the budget on the 3-person domes and on pose2sim (docs/gba.md)."""
+    min_sigma_px: float = 0.5
+    """Smallest noise a cluster is given, pixels: a spread estimated below half a
+    pixel (clean synthetic priors) is rendering, not detection, precision."""
+    robust_sigmas: float = 2.0
+    """With ``surface_tracks``: scale of each people observation's Cauchy loss, in
+    its cluster's spread sigma (not the inflated noise: one wrong sample of a
+    cluster is an outlier at a few sigma whatever the cluster's shared error)."""
     min_track_length: int = 2
     """Keypoint tracks seen by fewer registered images are left out."""
     surface_seed: int = 0
@@ -105,6 +123,9 @@ class KeypointBaSummary:
     relocalised: tuple[str, ...] = ()  # images re-posed by the camera check
     left_out: dict[str, str] | None = None  # image name -> why it was deregistered
     mirrored: tuple[str, ...] = ()  # re-posed with their people's left/right swapped
+    noise_px: dict[int, np.ndarray] | None = None
+    """Image id -> (num points2D,) noise of each people observation, pixels (NaN:
+    classic); None without surface tracks."""
 
 
 def with_loss_scale(
@@ -163,7 +184,9 @@ def keypoint_bundle_adjustment(
         vc_only.append(point_id)
         vc_obs.append(len(els))
     per_image = (
-        options.surface_per_image_two_view
+        0.0  # replaced by the surface tracks by identity
+        if options.surface_tracks
+        else options.surface_per_image_two_view
         if len(registered) == 2
         else options.surface_per_image
     )
@@ -177,19 +200,35 @@ def keypoint_bundle_adjustment(
     good, counts = add_keypoint_points(out, tracks, options.min_track_length)
     num_kp_obs = int(counts[good].sum())
     bundle_adjust_inplace(out, options.loss_scale_px)
+    noise_px: dict[int, np.ndarray] | None = None
+    robust_px: dict[int, np.ndarray] | None = None
+    num_surface = int(sum(vc_obs)) - dropped
+    if options.surface_tracks:
+        noise_px, robust_px, num_surface = _add_weighted_surface(
+            database_path, out, tracks, registered, options
+        )
+        bundle_adjust_inplace(out, options.loss_scale_px, noise_px, robust_px)
     relocalised: list[str] = []
     left_out: dict[str, str] = {}
     mirrored: list[str] = []
     if options.check_cameras:
         relocalised, left_out, mirrored = check_cameras_inplace(
-            out, tracks, options, mirror=mirror, num_classic=num_classic
+            out,
+            tracks,
+            options,
+            lambda rec: bundle_adjust_inplace(
+                rec, options.loss_scale_px, noise_px, robust_px
+            ),
+            mirror=mirror,
+            num_classic=num_classic,
         )
     summary = KeypointBaSummary(
         num_tracks=int(good.sum()),
         num_keypoint_observations=num_kp_obs,
-        num_surface_observations=int(sum(vc_obs)) - dropped,
+        num_surface_observations=num_surface,
         num_surface_observations_dropped=dropped,
         elapsed_s=time.perf_counter() - t0,
+        noise_px=noise_px,
         relocalised=tuple(relocalised),
         left_out=left_out,
         mirrored=tuple(mirrored),
@@ -204,3 +243,45 @@ def keypoint_bundle_adjustment(
         summary.elapsed_s,
     )
     return out, summary
+
+
+def _add_weighted_surface(
+    database_path: Path,
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    registered: np.ndarray,
+    options: KeypointBaOptions,
+) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], int]:
+    """Add the surface tracks by identity to ``rec`` (its poses adjusted by the
+    keypoints) and weigh every keypoint and surface observation by its cluster's
+    noise -> (image id -> per-observation noise px, surface observations added)."""
+    surface = surface_tracks(database_path, registered)
+    sigma = {
+        int(i): np.full(rec.image(int(i)).num_points2D(), np.nan) for i in registered
+    }
+    robust = {i: np.full_like(v, np.nan) for i, v in sigma.items()}
+    num_surface = 0
+    for kind, trk in (("keypoint", tracks), ("surface", surface)):
+        if trk.num_tracks == 0:
+            continue
+        X, counts = triangulate_tracks(rec, trk)
+        noise = cluster_noise(rec, trk, X)
+        per_obs = noise.observation_sigma_px(options.min_sigma_px)
+        spread = options.robust_sigmas * noise.observation_spread_px(
+            options.min_sigma_px
+        )
+        ok = np.isfinite(per_obs)
+        for image_id in np.unique(trk.image_id[ok]):  # loop over images
+            sel = ok & (trk.image_id == image_id)
+            sigma[int(image_id)][trk.point2D_idx[sel]] = per_obs[sel]
+            robust[int(image_id)][trk.point2D_idx[sel]] = spread[sel]
+        logger.debug(
+            "GBA %s noise per (image, person): spread %s px, shared %s px",
+            kind,
+            np.round(np.median(noise.sigma_px), 2) if len(noise.sigma_px) else None,
+            np.round(np.median(noise.tau_px), 2) if len(noise.tau_px) else None,
+        )
+        if kind == "surface":
+            good, _ = add_keypoint_points(rec, trk, options.min_track_length)
+            num_surface = int(counts[good].sum())
+    return sigma, robust, num_surface

@@ -71,6 +71,23 @@ def keypoint_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTrack
     A VC keypoint is a keypoint when some pair matched it as ``HitKind.KEYPOINT``; its
     identity is its person's (``person_identities``) and its template track id.
     """
+    return body_tracks(database_path, image_ids, surface=False)
+
+
+def surface_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTracks:
+    """The surface VCs of the given images, as tracks (person identity, template
+    surface sample): one 3D point of the body seen (or hidden) in every view of the
+    person, the X1 that all pairs of those views share."""
+    return body_tracks(database_path, image_ids, surface=True)
+
+
+def body_tracks(
+    database_path: Path, image_ids: IndexArray, *, surface: bool
+) -> KeypointTracks:
+    """The keypoint (``surface`` False) or surface VCs of the given images as tracks
+    by (person identity, template track id). A VC keypoint is a keypoint when some
+    pair matched it as ``HitKind.KEYPOINT``, a surface sample when a pair matched it
+    and none as a keypoint."""
     views = database.read_views(database_path)
     num_classic = dict(
         zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
@@ -80,16 +97,20 @@ def keypoint_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTrack
     is_kp: dict[int, np.ndarray] = {
         v.image_id: np.zeros(len(v.track_id), dtype=bool) for v in vc_keypoints
     }
+    used = {k: v.copy() for k, v in is_kp.items()}
     for p in pairs:  # loop over image pairs, vectorized over VCs
         kp = p.kind == HitKind.KEYPOINT
         is_kp[p.image_id1][p.idx1[kp]] = True
         is_kp[p.image_id2][p.idx2[kp]] = True
+        used[p.image_id1][p.idx1] = True
+        used[p.image_id2][p.idx2] = True
+    chosen = {k: used[k] & ~v for k, v in is_kp.items()} if surface else is_kp
     wanted = set(np.asarray(image_ids).tolist())
     parts = []
     for v in vc_keypoints:  # loop over images
-        if v.image_id not in wanted or not is_kp[v.image_id].any():
+        if v.image_id not in wanted or not chosen[v.image_id].any():
             continue
-        rows = np.flatnonzero(is_kp[v.image_id])
+        rows = np.flatnonzero(chosen[v.image_id])
         ident = np.array(
             [identity.get((v.image_id, int(p)), -1) for p in v.person_id[rows]],
             dtype=np.int64,
@@ -106,7 +127,7 @@ def keypoint_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTrack
             )
         )
     parts = [part for part in parts if len(part[0])]
-    if not parts:  # no keypoint VC of a person with an identity
+    if not parts:  # no VC of the kind of a person with an identity
         z = np.zeros(0, dtype=np.int64)
         return KeypointTracks(
             track=z, image_id=z, point2D_idx=z, xy_img=np.zeros((0, 2))
@@ -224,19 +245,6 @@ def loss_scale_px(
         return float(scale_px)
     sides = [max(c.width, c.height) for c in rec.cameras.values()] or [1920]
     return frac * float(np.median(sides))
-
-
-def bundle_adjust_inplace(rec: pycolmap.Reconstruction, loss_scale_px: float) -> None:
-    """COLMAP's bundle adjustment (intrinsics fixed, Cauchy loss), in place."""
-    ba = pycolmap.BundleAdjustmentOptions(
-        refine_focal_length=False,
-        refine_principal_point=False,
-        refine_extra_params=False,
-        print_summary=False,
-    )
-    ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    ba.ceres.loss_function_scale = loss_scale_px
-    pycolmap.bundle_adjustment(rec, ba)
 
 
 def subset(tracks: KeypointTracks, keep: np.ndarray) -> KeypointTracks:

@@ -21,8 +21,8 @@ import pycolmap
 
 from . import __version__, canonical, database, outputs
 from .camera_check import classic_support
+from .gba.ceres import bundle_adjust_inplace
 from .keypoint_ba import keypoint_bundle_adjustment, with_loss_scale
-from .keypoint_tracks import bundle_adjust_inplace
 from .mapping_init import mesh_initialised, two_view_initialised
 from .mapping_options import (
     Mapper,
@@ -270,6 +270,7 @@ def _map_copy(
     lap = time.perf_counter()
     left_out: dict[str, str] = {}
     mirrored: tuple[str, ...] = ()
+    noise_px = None
     if best is not None and options.keypoint_ba:
         best, kba = keypoint_bundle_adjustment(
             database_path,
@@ -280,6 +281,7 @@ def _map_copy(
         models[best_key] = best
         left_out.update(kba.left_out or {})
         mirrored = kba.mirrored
+        noise_px = kba.noise_px
     timings["keypoint_ba"] = time.perf_counter() - lap
     lap = time.perf_counter()
     if best is not None and priors is not None:
@@ -305,7 +307,7 @@ def _map_copy(
         )
         if left_out:
             kba_options = with_loss_scale(options.keypoint_ba_options, best)
-            bundle_adjust_inplace(best, kba_options.loss_scale_px)
+            bundle_adjust_inplace(best, kba_options.loss_scale_px, noise_px)
     timings["checks"] = time.perf_counter() - lap
     lap = time.perf_counter()
     scale = None

@@ -15,7 +15,7 @@ import pycolmap
 
 from . import database
 from .evaluation import relative_pose, rotation_angle_deg
-from .keypoint_tracks import bundle_adjust_inplace
+from .gba.ceres import bundle_adjust_inplace
 from .mapping_options import Mapper, MappingOptions, incremental_options
 from .meshalign import mesh_alignment_poses
 from .structs import FloatArray, ScenePriors

@@ -11,6 +11,7 @@ import pytest
 from colmap_vc import augment, database, mapping
 from colmap_vc.camera_check import check_cameras_inplace
 from colmap_vc.evaluation import evaluate_reconstruction
+from colmap_vc.gba.ceres import bundle_adjust_inplace
 from colmap_vc.keypoint_ba import KeypointBaOptions, keypoint_bundle_adjustment
 from colmap_vc.keypoint_tracks import (
     KeypointTracks,
@@ -20,6 +21,11 @@ from colmap_vc.keypoint_tracks import (
     person_identities,
     triangulate_tracks,
 )
+
+
+def _adjust(rec: pycolmap.Reconstruction) -> None:
+    """The camera check's bundle adjustment: COLMAP's, Cauchy loss at 4 px."""
+    bundle_adjust_inplace(rec, 4.0)
 
 
 @pytest.fixture(scope="module")
@@ -161,7 +167,7 @@ def test_camera_check_re_poses_or_leaves_out_a_wrong_camera(dome_scene, rng, key
         pycolmap.Rotation3d(turn @ T[:, :3]), turn @ T[:, 3]
     )
     relocalised, left_out, _ = check_cameras_inplace(
-        rec, tracks, KeypointBaOptions(loss_scale_px=4.0)
+        rec, tracks, KeypointBaOptions(loss_scale_px=4.0), _adjust
     )
     if keypoints == "right":
         assert relocalised == [name] and not left_out
@@ -207,11 +213,12 @@ def test_camera_check_never_judges_a_camera_classic_matches_place(dome_scene, rn
         pycolmap.Reconstruction(rec),
         tracks,
         options,
+        _adjust,
         num_classic=dict.fromkeys(rec.images, 0),
     )
     assert list(left_out) == [names[1]]  # without the SIFT points: left out
     relocalised, left_out, _ = check_cameras_inplace(
-        rec, tracks, options, num_classic=num_classic
+        rec, tracks, options, _adjust, num_classic=num_classic
     )
     assert not relocalised and not left_out
     assert np.allclose(rec.image(image.image_id).cam_from_world().matrix(), before)
@@ -257,11 +264,13 @@ def test_camera_check_exchanges_left_and_right(dome_scene, rng):
     options = KeypointBaOptions(loss_scale_px=4.0, min_check_points=8)
     # Without the mirror the camera is left out; with it, re-posed where it is.
     plain = pycolmap.Reconstruction(rec)
-    relocalised, left_out, mirrored = check_cameras_inplace(plain, tracks, options)
+    relocalised, left_out, mirrored = check_cameras_inplace(
+        plain, tracks, options, _adjust
+    )
     assert list(left_out) == [name] and not mirrored
     num_classic = dict.fromkeys(rec.images, 0)  # every keypoint is a VC
     relocalised, left_out, mirrored = check_cameras_inplace(
-        rec, tracks, options, mirror=mirror, num_classic=num_classic
+        rec, tracks, options, _adjust, mirror=mirror, num_classic=num_classic
     )
     assert mirrored == [name] == relocalised and not left_out
     for other, T in truth.items():
@@ -319,3 +328,38 @@ def test_the_keypoint_noise_scale_follows_the_image_resolution():
     assert loss_scale_px(rec, None, frac) == pytest.approx(16.0 / 3.0)
     assert loss_scale_px(rec, 9.0, frac) == 9.0
     assert loss_scale_px(pycolmap.Reconstruction(), None, frac) == pytest.approx(16.0)
+
+
+def test_gba_weights_surface_tracks_by_their_noise(dome_scene, mapped, rng):
+    """`map --gba`'s refinement: every surface VC joins its track by identity
+    (one point per person and template sample, seen by several images), each
+    people observation gets a noise from its (image, person) cluster, and the
+    poses come back from a 5 deg perturbation as with the keypoint BA."""
+    db, rec = mapped
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    perturbed = pycolmap.Reconstruction(rec)
+    for image in perturbed.images.values():
+        w = rng.normal(size=3)
+        dR = pycolmap.Rotation3d(w / np.linalg.norm(w) * np.deg2rad(5.0)).matrix()
+        T = image.cam_from_world().matrix()
+        new = pycolmap.Rigid3d(pycolmap.Rotation3d(dR @ T[:, :3]), T[:, 3])
+        perturbed.frame(image.frame_id).rig_from_world = new
+    out, summary = keypoint_bundle_adjustment(
+        db, perturbed, KeypointBaOptions(surface_tracks=True)
+    )
+    assert summary.noise_px is not None and summary.num_surface_observations > 0
+    sigma = np.concatenate(list(summary.noise_px.values()))
+    sigma = sigma[np.isfinite(sigma)]
+    assert len(sigma) >= summary.num_surface_observations
+    assert (sigma >= KeypointBaOptions().min_sigma_px).all()
+    views = database.read_views(db)
+    first_vc = dict(
+        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
+    )
+    lengths = [
+        len(p.track.elements)
+        for p in out.points3D.values()
+        if all(e.point2D_idx >= first_vc[e.image_id] for e in p.track.elements)
+    ]
+    assert np.median(lengths) > 2  # tracks by identity, not two-view matches
+    assert evaluate_reconstruction(out, gt).median_error_deg < 1.0
