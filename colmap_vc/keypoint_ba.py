@@ -29,7 +29,7 @@ import pycolmap
 
 from . import database
 from .camera_check import check_cameras_inplace
-from .gba.ceres import bundle_adjust_inplace
+from .gba.ceres import PeopleNoise, bundle_adjust_inplace
 from .gba.noise import cluster_noise
 from .keypoint_tracks import (
     KeypointTracks,
@@ -123,9 +123,9 @@ class KeypointBaSummary:
     relocalised: tuple[str, ...] = ()  # images re-posed by the camera check
     left_out: dict[str, str] | None = None  # image name -> why it was deregistered
     mirrored: tuple[str, ...] = ()  # re-posed with their people's left/right swapped
-    noise_px: dict[int, np.ndarray] | None = None
-    """Image id -> (num points2D,) noise of each people observation, pixels (NaN:
-    classic); None without surface tracks."""
+    people: PeopleNoise | None = None
+    """The noise of each people observation (None without surface tracks): what
+    a later bundle adjustment of the model weighs them by."""
 
 
 def with_loss_scale(
@@ -200,14 +200,13 @@ def keypoint_bundle_adjustment(
     good, counts = add_keypoint_points(out, tracks, options.min_track_length)
     num_kp_obs = int(counts[good].sum())
     bundle_adjust_inplace(out, options.loss_scale_px)
-    noise_px: dict[int, np.ndarray] | None = None
-    robust_px: dict[int, np.ndarray] | None = None
+    people: PeopleNoise | None = None
     num_surface = int(sum(vc_obs)) - dropped
     if options.surface_tracks:
-        noise_px, robust_px, num_surface = _add_weighted_surface(
+        people, num_surface = _add_weighted_surface(
             database_path, out, tracks, registered, options
         )
-        bundle_adjust_inplace(out, options.loss_scale_px, noise_px, robust_px)
+        bundle_adjust_inplace(out, options.loss_scale_px, people)
     relocalised: list[str] = []
     left_out: dict[str, str] = {}
     mirrored: list[str] = []
@@ -216,9 +215,7 @@ def keypoint_bundle_adjustment(
             out,
             tracks,
             options,
-            lambda rec: bundle_adjust_inplace(
-                rec, options.loss_scale_px, noise_px, robust_px
-            ),
+            lambda rec: bundle_adjust_inplace(rec, options.loss_scale_px, people),
             mirror=mirror,
             num_classic=num_classic,
         )
@@ -228,7 +225,7 @@ def keypoint_bundle_adjustment(
         num_surface_observations=num_surface,
         num_surface_observations_dropped=dropped,
         elapsed_s=time.perf_counter() - t0,
-        noise_px=noise_px,
+        people=people,
         relocalised=tuple(relocalised),
         left_out=left_out,
         mirrored=tuple(mirrored),
@@ -251,7 +248,7 @@ def _add_weighted_surface(
     tracks: KeypointTracks,
     registered: np.ndarray,
     options: KeypointBaOptions,
-) -> tuple[dict[int, np.ndarray], dict[int, np.ndarray], int]:
+) -> tuple[PeopleNoise, int]:
     """Add the surface tracks by identity to ``rec`` (its poses adjusted by the
     keypoints) and weigh every keypoint and surface observation by its cluster's
     noise -> (image id -> per-observation noise px, surface observations added)."""
@@ -267,14 +264,14 @@ def _add_weighted_surface(
         X, counts = triangulate_tracks(rec, trk)
         noise = cluster_noise(rec, trk, X)
         per_obs = noise.observation_sigma_px(options.min_sigma_px)
-        spread = options.robust_sigmas * noise.observation_spread_px(
-            options.min_sigma_px
-        )
+        spread = noise.observation_spread_px(options.min_sigma_px)
         ok = np.isfinite(per_obs)
         for image_id in np.unique(trk.image_id[ok]):  # loop over images
             sel = ok & (trk.image_id == image_id)
             sigma[int(image_id)][trk.point2D_idx[sel]] = per_obs[sel]
-            robust[int(image_id)][trk.point2D_idx[sel]] = spread[sel]
+            robust[int(image_id)][trk.point2D_idx[sel]] = (
+                options.robust_sigmas * spread[sel]
+            )
         logger.debug(
             "GBA %s noise per (image, person): spread %s px, shared %s px",
             kind,
@@ -284,4 +281,4 @@ def _add_weighted_surface(
         if kind == "surface":
             good, _ = add_keypoint_points(rec, trk, options.min_track_length)
             num_surface = int(counts[good].sum())
-    return sigma, robust, num_surface
+    return PeopleNoise(sigma_px=sigma, robust_px=robust), num_surface

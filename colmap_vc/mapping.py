@@ -270,7 +270,7 @@ def _map_copy(
     lap = time.perf_counter()
     left_out: dict[str, str] = {}
     mirrored: tuple[str, ...] = ()
-    noise_px = None
+    people = None
     if best is not None and options.keypoint_ba:
         best, kba = keypoint_bundle_adjustment(
             database_path,
@@ -281,7 +281,7 @@ def _map_copy(
         models[best_key] = best
         left_out.update(kba.left_out or {})
         mirrored = kba.mirrored
-        noise_px = kba.noise_px
+        people = kba.people
     timings["keypoint_ba"] = time.perf_counter() - lap
     lap = time.perf_counter()
     if best is not None and priors is not None:
@@ -307,7 +307,7 @@ def _map_copy(
         )
         if left_out:
             kba_options = with_loss_scale(options.keypoint_ba_options, best)
-            bundle_adjust_inplace(best, kba_options.loss_scale_px, noise_px)
+            bundle_adjust_inplace(best, kba_options.loss_scale_px, people)
     timings["checks"] = time.perf_counter() - lap
     lap = time.perf_counter()
     scale = None

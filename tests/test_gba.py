@@ -8,7 +8,7 @@ import pycolmap
 import pytest
 
 from colmap_vc.evaluation import evaluate_reconstruction
-from colmap_vc.gba.ceres import bundle_adjust_inplace
+from colmap_vc.gba.ceres import PeopleNoise, bundle_adjust_inplace
 from colmap_vc.gba.noise import cluster_noise, reprojection_residuals
 from colmap_vc.keypoint_tracks import KeypointTracks
 
@@ -69,7 +69,8 @@ def test_weighted_observations_follow_their_noise(dome_scene, rng):
         for i in rec.reg_image_ids()
     }
     weighted = pycolmap.Reconstruction(rec)
-    bundle_adjust_inplace(weighted, 1000.0, sigma)
+    people = PeopleNoise(sigma_px=sigma, robust_px={i: 3 * v for i, v in sigma.items()})
+    bundle_adjust_inplace(weighted, 1000.0, people)
     r_plain = np.median(_other_residuals(plain, tracks, bad))
     r_weighted = np.median(_other_residuals(weighted, tracks, bad))
     assert r_weighted < 0.6 and r_weighted < 0.5 * r_plain
@@ -84,8 +85,9 @@ def test_weighted_bundle_adjustment_recovers_perturbed_poses(dome_scene, rng):
     X = rng.normal(0, 0.4, (60, 3)) * [1, 2, 1] + [0, -0.9, 0]
     rec, _ = _observed(gt, X, {}, rng)
     sigma = {i: np.full(rec.image(i).num_points2D(), 0.3) for i in rec.reg_image_ids()}
+    people = PeopleNoise(sigma_px=sigma, robust_px={i: 3 * v for i, v in sigma.items()})
     optimum = pycolmap.Reconstruction(rec)
-    bundle_adjust_inplace(optimum, 1.0, sigma)
+    bundle_adjust_inplace(optimum, 1.0, people)
     for image in rec.images.values():
         w = rng.normal(size=3)
         dR = pycolmap.Rotation3d(w / np.linalg.norm(w) * np.deg2rad(2.0)).matrix()
@@ -94,28 +96,32 @@ def test_weighted_bundle_adjustment_recovers_perturbed_poses(dome_scene, rng):
             pycolmap.Rotation3d(dR @ T[:, :3]), T[:, 3]
         )
     assert evaluate_reconstruction(rec, gt).median_error_deg > 1.0
-    bundle_adjust_inplace(rec, 1.0, sigma)
+    bundle_adjust_inplace(rec, 1.0, people)
     assert evaluate_reconstruction(rec, optimum).p80_error_deg < 0.01
     assert evaluate_reconstruction(rec, gt).median_error_deg < 0.2
 
 
-@pytest.mark.parametrize("tau", [0.0, 4.0])
-def test_cluster_noise_separates_shared_and_own_error(dome_scene, rng, tau):
-    """Residuals = an affine field of the pixel position (shared, rms tau per
-    coordinate) + independent noise sigma: both come back per cluster."""
+@pytest.mark.parametrize("turn_deg", [0.0, 1.5])
+def test_cluster_noise_separates_shared_and_own_error(dome_scene, rng, turn_deg):
+    """Pixels = the projection by a camera turned by ``turn_deg`` (the shared
+    error of a body predicted turned: every point of the person moves together)
+    + independent noise sigma: both come back per cluster."""
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     X = rng.normal(0, 0.4, (400, 3)) * [1, 2, 1] + [0, -0.9, 0]
     sigma = 2.0
     rec, tracks = _observed(gt, X, dict.fromkeys(gt.reg_image_ids(), 0.0), rng)
     xy = tracks.xy_img.copy()
+    tau = {}
     for i in np.unique(tracks.image_id):
         sel = tracks.image_id == i
-        d = xy[sel] - xy[sel].mean(axis=0)
-        d /= np.sqrt((d**2).sum(axis=1).mean())
-        A = rng.normal(size=(3, 2))
-        field = np.c_[d, np.ones(len(d))] @ A
-        field *= tau / np.sqrt((field**2).mean()) if tau > 0 else 0.0
-        xy[sel] = xy[sel] - field + rng.normal(0, sigma, d.shape)
+        image = rec.image(int(i))
+        w = rng.normal(size=3)
+        dR = pycolmap.Rotation3d(w / np.linalg.norm(w) * np.deg2rad(turn_deg))
+        T = image.cam_from_world().matrix()
+        Xc = X[tracks.track[sel]] @ T[:, :3].T + T[:, 3]
+        moved = np.asarray(rec.camera(image.camera_id).img_from_cam(Xc @ dR.matrix().T))
+        tau[int(i)] = np.sqrt(((moved - xy[sel]) ** 2).mean())
+        xy[sel] = moved + rng.normal(0, sigma, moved.shape)
     noisy = KeypointTracks(
         track=tracks.track,
         image_id=tracks.image_id,
@@ -126,10 +132,12 @@ def test_cluster_noise_separates_shared_and_own_error(dome_scene, rng, tau):
     noise = cluster_noise(rec, noisy, X)
     assert len(noise.count) == rec.num_reg_images()
     assert np.allclose(noise.sigma_px, sigma, rtol=0.2)
-    if tau == 0:
+    true_tau = np.array([tau[int(i)] for i in noise.image_id])
+    if turn_deg == 0:
         assert (noise.tau_px < 0.3 * sigma).all()
     else:
-        assert np.allclose(noise.tau_px, tau, rtol=0.25)
+        assert np.median(true_tau) > 2 * sigma
+        assert np.allclose(noise.tau_px, true_tau, rtol=0.1, atol=0.3)
     per_obs = noise.observation_sigma_px(0.5)
     expected = np.sqrt(noise.sigma_px**2 + noise.count * noise.tau_px**2)
     assert np.allclose(per_obs, expected[noise.cluster])

@@ -347,8 +347,8 @@ def test_gba_weights_surface_tracks_by_their_noise(dome_scene, mapped, rng):
     out, summary = keypoint_bundle_adjustment(
         db, perturbed, KeypointBaOptions(surface_tracks=True)
     )
-    assert summary.noise_px is not None and summary.num_surface_observations > 0
-    sigma = np.concatenate(list(summary.noise_px.values()))
+    assert summary.people is not None and summary.num_surface_observations > 0
+    sigma = np.concatenate(list(summary.people.sigma_px.values()))
     sigma = sigma[np.isfinite(sigma)]
     assert len(sigma) >= summary.num_surface_observations
     assert (sigma >= KeypointBaOptions().min_sigma_px).all()

@@ -4,18 +4,18 @@ The generalized BA runs on COLMAP's own Ceres problem: pycolmap builds it for th
 model's registered images (its pose manifolds, gauge, camera models and solver
 options), every observation of a model point as COLMAP's reprojection cost with
 its robust loss. The observations of the people's tracks (keypoints and surface
-samples by identity) then leave COLMAP's cost and come back as
-``pycolmap.cost_functions.ReprojErrorCost`` with a covariance of their own noise
-(:mod:`colmap_vc.gba.noise`), on the same parameter blocks. pycolmap hands its
-problem to Python through pyceres, whose ``Problem`` holds COLMAP's blocks by
-address: the model's poses and points are numpy views of the reconstruction's own
-memory, so the solve writes into it.
+samples by identity) then leave COLMAP's cost and come back as pycolmap's
+reprojection costs with a covariance of their own noise (:mod:`colmap_vc.gba.noise`)
+on the same parameter blocks. pycolmap hands its problem to Python through pyceres,
+whose ``Problem`` holds COLMAP's blocks by address: the model's poses and points
+are numpy views of the reconstruction's own memory, so the solve writes into it.
 """
 
 from __future__ import annotations
 
 import logging
 from collections.abc import Mapping
+from dataclasses import dataclass
 
 import numpy as np
 import pyceres
@@ -27,11 +27,18 @@ from ..structs import FloatArray
 logger = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True, kw_only=True, slots=True)
+class PeopleNoise:
+    """Noise of the people observations, per image over its points2D."""
+
+    sigma_px: Mapping[int, FloatArray]  # (num points2D,) noise px; NaN: classic
+    robust_px: Mapping[int, FloatArray]  # (num points2D,) Cauchy scale px
+
+
 def bundle_adjust_inplace(
     rec: pycolmap.Reconstruction,
     loss_scale_px: float,
-    sigma_px: Mapping[int, FloatArray] | None = None,
-    robust_px: Mapping[int, FloatArray] | None = None,
+    people: PeopleNoise | None = None,
 ) -> pycolmap.BundleAdjustmentSummary:
     """COLMAP's bundle adjustment of ``rec`` in place (intrinsics fixed).
 
@@ -39,13 +46,10 @@ def bundle_adjust_inplace(
         rec: the model; every registered image is adjusted, the gauge fixed as
             COLMAP's global BA does (two cameras).
         loss_scale_px: scale of the Cauchy loss of the observations without a
-            ``sigma_px`` (classic keypoints), pixels.
-        sigma_px: image id -> (num points2D,) noise of each observation in pixels,
-            NaN where COLMAP's own cost stays. A model point all of whose
-            observations have one is weighted by them (covariance sigma^2 I);
+            noise in ``people`` (classic keypoints), pixels.
+        people: a model point all of whose observations have a noise there is
+            weighted by them (covariance sigma^2 I, Cauchy loss at ``robust_px``);
             None: plain COLMAP BA.
-        robust_px: the same layout: scale of each weighted observation's Cauchy
-            loss, pixels (default: 2 sigma).
     """
     options = pycolmap.BundleAdjustmentOptions(
         refine_focal_length=False,
@@ -60,24 +64,20 @@ def bundle_adjust_inplace(
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
-    keep_alive = _reweight(adjuster.problem, rec, sigma_px or {}, robust_px or {})
+    keep_alive = [] if people is None else _reweight(adjuster.problem, rec, people)
     summary = adjuster.solve()
     del keep_alive
     return summary
 
 
 def _reweight(
-    problem: pyceres.Problem,
-    rec: pycolmap.Reconstruction,
-    sigma_px: Mapping[int, FloatArray],
-    robust_px: Mapping[int, FloatArray],
+    problem: pyceres.Problem, rec: pycolmap.Reconstruction, people: PeopleNoise
 ) -> list:
     """Replace the costs of the weighted points by covariance-weighted ones; returns
     the new cost and loss objects (alive until the solve is over)."""
-    if not sigma_px:
-        return []
     losses: dict[float, pyceres.LossFunction] = {}
-    alive: list = []
+    alive = []
+    sigma_px, robust_px = people.sigma_px, people.robust_px
     for point_id, point in rec.points3D.items():  # loop over the model's points
         els = point.track.elements
         sig = [
@@ -96,15 +96,10 @@ def _reweight(
             camera = rec.camera(image.camera_id)
             if not problem.has_parameter_block(pose):
                 continue
-            cost = cost_functions.ReprojErrorCost(
-                camera.model,
-                (s * s) * np.eye(2),
-                np.asarray(image.points2D[e.point2D_idx].xy, dtype=np.float64),
-            )
-            scale = 2.0
-            if e.image_id in robust_px:
-                scale = round(float(robust_px[e.image_id][e.point2D_idx]) / s, 3)
+            xy = np.asarray(image.points2D[e.point2D_idx].xy, dtype=np.float64)
+            scale = round(float(robust_px[e.image_id][e.point2D_idx]) / s, 3)
             loss = losses.setdefault(scale, pyceres.CauchyLoss(scale))
+            cost = cost_functions.ReprojErrorCost(camera.model, (s * s) * np.eye(2), xy)
             problem.add_residual_block(cost, loss, [xyz, pose, camera.params])
             alive.append(cost)
     return alive + list(losses.values())

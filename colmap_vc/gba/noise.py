@@ -13,10 +13,12 @@ observation at its bias, whatever the number of samples, and an unbiased one
 (clean priors) counts fully.
 
 Both are estimated per cluster (kind, image, person) from the residuals against
-points triangulated by *all* views: the shared error is an affine function of the
-pixel position fitted to the cluster's residuals (an offset, and the stretch and
-turn of a body predicted turned or at the wrong depth), tau^2 its mean square less
-what noise alone would fit; the spread is the scaled MAD of the rest.
+points triangulated by *all* views. The shared error is the part of the cluster's
+residuals that a small motion of its camera explains (least squares on the
+derivative of the projections by the camera's rotation and translation): the part
+that would move the camera, and a body predicted turned, shifted or at the wrong
+depth errs in that way. tau^2 is its mean square per coordinate less what noise
+alone would fit (6 sigma^2 / N); the spread sigma is the scaled MAD of the rest.
 """
 
 from __future__ import annotations
@@ -106,15 +108,15 @@ def cluster_noise(
     cl = cl.ravel()
     n = np.bincount(cl, minlength=len(keys))
     r = res[ok]
-    shared = _affine_field(tracks.xy_img[ok], r, cl, len(keys))  # (O_ok, 2)
+    shared = _fitted_field(_pose_jacobians(rec, tracks, X)[ok], r, cl, len(keys))
     order = np.argsort(cl, kind="stable")
     starts = np.r_[0, np.cumsum(n)[:-1]]
     dev = np.abs(r - shared)[order]
-    centre = _grouped_median(dev, starts, n)
-    sigma = MAD_TO_SIGMA * centre.mean(axis=1)
-    # E|shared|^2 per coordinate = tau^2 + (3 / n) sigma^2 (3 fitted coefficients)
+    mad = _grouped_median(dev, starts, n)
+    sigma = MAD_TO_SIGMA * mad.mean(axis=1)
+    # E|shared|^2 per coordinate = tau^2 + (6 / n) sigma^2 (6 fitted coefficients)
     field2 = np.bincount(cl, weights=(shared**2).sum(axis=1), minlength=len(keys))
-    tau2 = np.maximum(field2 / (2 * n) - 3 * sigma**2 / n, 0.0)
+    tau2 = np.maximum(field2 / (2 * n) - 6 * sigma**2 / n, 0.0)
     cluster = np.full(len(tracks.track), -1, dtype=np.int64)
     cluster[np.flatnonzero(ok)] = cl
     return ClusterNoise(
@@ -127,33 +129,51 @@ def cluster_noise(
     )
 
 
-def _affine_field(
-    xy: FloatArray, r: FloatArray, cluster: IndexArray, num: int
+def _pose_jacobians(
+    rec: pycolmap.Reconstruction, tracks: KeypointTracks, X: FloatArray
 ) -> FloatArray:
-    """(O, 2) least-squares affine function of the pixel position fitted to the
-    residuals ``r`` of each cluster (its shared error: an offset, and the
-    stretch and turn that a body turned or scaled in depth gives), evaluated at
-    each observation. A cluster with fewer than 6 observations gets its mean."""
-    centre = np.zeros((num, 2))
-    np.add.at(centre, cluster, xy)
-    n = np.bincount(cluster, minlength=num).astype(np.float64)
-    centre /= np.maximum(n, 1)[:, None]
-    scale = np.zeros(num)
-    d = xy - centre[cluster]
-    np.add.at(scale, cluster, (d**2).sum(axis=1))
-    scale = np.sqrt(np.maximum(scale / np.maximum(n, 1), 1e-12))
-    A = np.c_[d / scale[cluster][:, None], np.ones(len(xy))]  # (O, 3)
-    AtA = np.zeros((num, 3, 3))
-    Atr = np.zeros((num, 3, 2))
-    np.add.at(AtA, cluster, A[:, :, None] * A[:, None, :])
-    np.add.at(Atr, cluster, A[:, :, None] * r[:, None, :])
-    small = n < 6
-    AtA[small, :2, :] = 0.0
-    AtA[small, :, :2] = 0.0
-    AtA[small, 0, 0] = AtA[small, 1, 1] = 1.0
-    Atr[small, :2] = 0.0
-    coef = np.linalg.solve(AtA + 1e-9 * np.eye(3), Atr)  # (C, 3, 2)
-    return np.einsum("oi,oij->oj", A, coef[cluster])
+    """(O, 2, 6) derivative of each observation's projection by a small motion of
+    its camera (rotation, translation): the error a camera pose can absorb."""
+    out = np.full((len(tracks.track), 2, 6), np.nan)
+    posed = observed_in_posed_images(rec, tracks)
+    for image_id in np.unique(tracks.image_id[posed]):  # loop over images
+        sel = np.flatnonzero(tracks.image_id == image_id)
+        image = rec.image(int(image_id))
+        camera = rec.camera(image.camera_id)
+        T = image.cam_from_world().matrix()
+        Xc = X[tracks.track[sel]] @ T[:, :3].T + T[:, 3]
+        x, y, z = Xc.T
+        # d(pixel)/d(camera point) by central differences: any camera model.
+        h = 1e-6 * np.maximum(np.abs(z), 1e-3)
+        P = np.empty((len(sel), 2, 3))
+        for k in range(3):  # loop over the 3 coordinates
+            step = np.zeros_like(Xc)
+            step[:, k] = h
+            plus = np.asarray(camera.img_from_cam(Xc + step))
+            minus = np.asarray(camera.img_from_cam(Xc - step))
+            P[:, :, k] = (plus - minus) / (2 * h[:, None])
+        M = np.zeros((len(sel), 3, 6))
+        M[:, 0, 1], M[:, 0, 2] = z, -y  # -[Xc]x
+        M[:, 1, 0], M[:, 1, 2] = -z, x
+        M[:, 2, 0], M[:, 2, 1] = y, -x
+        M[:, :, 3:] = np.eye(3)
+        out[sel] = P @ M
+    return out
+
+
+def _fitted_field(
+    J: FloatArray, r: FloatArray, cluster: IndexArray, num: int
+) -> FloatArray:
+    """(O, 2) least-squares fit of the residuals of each cluster by J delta."""
+    m = J.shape[2]
+    JtJ = np.zeros((num, m, m))
+    Jtr = np.zeros((num, m))
+    np.add.at(JtJ, cluster, np.einsum("oki,okj->oij", J, J))
+    np.add.at(Jtr, cluster, np.einsum("oki,ok->oi", J, r))
+    d = np.sqrt(np.maximum(np.einsum("cii->ci", JtJ), 1e-12))  # column scaling
+    A = JtJ / d[:, :, None] / d[:, None, :] + 1e-9 * np.eye(m)
+    delta = np.linalg.solve(A, (Jtr / d)[..., None])[..., 0] / d
+    return np.einsum("oki,oi->ok", J, delta[cluster])
 
 
 def _grouped_median(
