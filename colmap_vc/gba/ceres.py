@@ -4,11 +4,17 @@ The generalized BA runs on COLMAP's own Ceres problem: pycolmap builds it for th
 model's registered images (its pose manifolds, gauge, camera models and solver
 options), every observation of a model point as COLMAP's reprojection cost with
 its robust loss. The observations of the people's tracks (keypoints and surface
-samples by identity) then leave COLMAP's cost and come back as pycolmap's
-reprojection costs with a covariance of their own noise (:mod:`colmap_vc.gba.noise`)
-on the same parameter blocks. pycolmap hands its problem to Python through pyceres,
-whose ``Problem`` holds COLMAP's blocks by address: the model's poses and points
-are numpy views of the reconstruction's own memory, so the solve writes into it.
+samples by identity) are not COLMAP's: they enter the same problem as pycolmap's
+reprojection costs weighted by their own noise (:mod:`colmap_vc.gba.noise`), on
+COLMAP's pose blocks. pycolmap hands its problem to Python through pyceres, whose
+``Problem`` holds COLMAP's blocks by address: the poses are numpy views of the
+reconstruction's own memory, so the solve writes into them.
+
+COLMAP's problem is built on a copy of the model without the weighted points
+(Ceres removes a block in time linear in the problem, as COLMAP does not enable
+fast removal): only where an image would then have no point at all, one of its
+weighted points stays to put its pose into the problem, with COLMAP's manifold,
+and is removed again.
 """
 
 from __future__ import annotations
@@ -48,8 +54,8 @@ def bundle_adjust_inplace(
         loss_scale_px: scale of the Cauchy loss of the observations without a
             noise in ``people`` (classic keypoints), pixels.
         people: a model point all of whose observations have a noise there is
-            weighted by them (covariance sigma^2 I, Cauchy loss at ``robust_px``);
-            None: plain COLMAP BA.
+            weighted by them (1 / sigma^2, Cauchy loss at ``robust_px``); None:
+            plain COLMAP BA.
     """
     options = pycolmap.BundleAdjustmentOptions(
         refine_focal_length=False,
@@ -63,43 +69,142 @@ def bundle_adjust_inplace(
     for image_id in sorted(rec.reg_image_ids()):
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
-    keep_alive = [] if people is None else _reweight(adjuster.problem, rec, people)
+    weighted = [] if people is None else _weighted_points(rec, people)
+    if not weighted:
+        adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
+        return adjuster.solve()
+    work = pycolmap.Reconstruction(rec)
+    anchors = _anchors(work, weighted)
+    for point_id in sorted(set(weighted) - set(anchors)):
+        work.delete_point3D(point_id)
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, work)
+    for point_id in anchors:
+        adjuster.problem.remove_parameter_block(work.point3D(point_id).xyz)
+    X = np.array([rec.point3D(p).xyz for p in weighted], dtype=np.float64)
+    keep_alive = _add_weighted(adjuster.problem, rec, work, weighted, X, people)
     summary = adjuster.solve()
     del keep_alive
+    for image_id in work.reg_image_ids():  # loop over images: the solved poses
+        frame_id = work.image(image_id).frame_id
+        rec.frame(frame_id).rig_from_world = work.frame(frame_id).rig_from_world
+    for point_id, point in work.points3D.items():  # the classic points
+        if point_id not in anchors:
+            rec.point3D(point_id).xyz = point.xyz
+    for row, point_id in enumerate(weighted):  # loop over the people's points
+        rec.point3D(point_id).xyz = X[row]
     return summary
 
 
-def _reweight(
-    problem: pyceres.Problem, rec: pycolmap.Reconstruction, people: PeopleNoise
-) -> list:
-    """Replace the costs of the weighted points by covariance-weighted ones; returns
-    the new cost and loss objects (alive until the solve is over)."""
-    losses: dict[float, pyceres.LossFunction] = {}
-    alive = []
-    sigma_px, robust_px = people.sigma_px, people.robust_px
-    for point_id, point in rec.points3D.items():  # loop over the model's points
-        els = point.track.elements
-        sig = [
-            float(sigma_px[e.image_id][e.point2D_idx])
-            if e.image_id in sigma_px
-            else np.nan
+def _weighted_points(rec: pycolmap.Reconstruction, people: PeopleNoise) -> list[int]:
+    """The model points all of whose observations have a noise, in id order."""
+    out = []
+    for point_id in sorted(rec.point3D_ids()):  # loop over the model's points
+        els = rec.point3D(point_id).track.elements
+        if all(
+            e.image_id in people.sigma_px
+            and np.isfinite(people.sigma_px[e.image_id][e.point2D_idx])
             for e in els
-        ]
-        if not np.isfinite(sig).all() or not problem.has_parameter_block(point.xyz):
-            continue
-        xyz = rec.point3D(point_id).xyz  # a view of the model's memory
-        problem.remove_parameter_block(xyz)
-        for e, s in zip(els, sig, strict=True):  # loop over one point's views
-            image = rec.image(e.image_id)
-            pose = image.frame.rig_from_world.params
-            camera = rec.camera(image.camera_id)
-            if not problem.has_parameter_block(pose):
-                continue
-            xy = np.asarray(image.points2D[e.point2D_idx].xy, dtype=np.float64)
-            scale = round(float(robust_px[e.image_id][e.point2D_idx]) / s, 3)
-            loss = losses.setdefault(scale, pyceres.CauchyLoss(scale))
-            cost = cost_functions.ReprojErrorCost(camera.model, (s * s) * np.eye(2), xy)
-            problem.add_residual_block(cost, loss, [xyz, pose, camera.params])
-            alive.append(cost)
-    return alive + list(losses.values())
+        ):
+            out.append(point_id)
+    return out
+
+
+def _anchors(rec: pycolmap.Reconstruction, weighted: list[int]) -> list[int]:
+    """A few weighted points, so that every registered image keeps one point in
+    the copy COLMAP builds its problem from (and its pose its manifold)."""
+    weighted_set = set(weighted)
+    covered = set()
+    for point_id, point in rec.points3D.items():  # loop over the model's points
+        if point_id not in weighted_set:
+            covered |= {e.image_id for e in point.track.elements}
+    need = set(rec.reg_image_ids()) - covered
+    anchors = []
+    for point_id in weighted:  # greedy: most uncovered images first
+        if not need:
+            break
+        seen = {e.image_id for e in rec.point3D(point_id).track.elements} & need
+        if seen:
+            anchors.append(point_id)
+            need -= seen
+    return anchors
+
+
+def _whitened_params(camera: pycolmap.Camera, sigma_px: float) -> np.ndarray:
+    """Camera parameters whose pixels are the camera's divided by ``sigma_px``.
+
+    Every COLMAP camera model maps its distorted normalised coordinates to pixels
+    by the focal lengths and the principal point, so dividing those by sigma
+    divides the reprojection error by sigma: the observation is weighted by
+    1 / sigma^2 with pycolmap's plain reprojection cost (its covariance-weighted
+    cost evaluates 4x slower, bench/gba_speed.py)."""
+    params = np.array(camera.params, dtype=np.float64)
+    idx = [*camera.focal_length_idxs(), *camera.principal_point_idxs()]
+    params[idx] /= sigma_px
+    return params
+
+
+def _add_weighted(
+    problem: pyceres.Problem,
+    rec: pycolmap.Reconstruction,
+    work: pycolmap.Reconstruction,
+    weighted: list[int],
+    X: np.ndarray,
+    people: PeopleNoise,
+) -> list:
+    """Add the observations of the weighted points (rows of ``X``) to ``problem``,
+    on the poses of ``work``; returns the new blocks and cost and loss objects
+    (alive until the solve is over).
+
+    An observation with noise sigma is seen through its camera scaled by 1/sigma
+    (:func:`_whitened_params`, one constant block per camera and sigma), with its
+    pixel divided by sigma and a Cauchy loss at its robust scale over sigma.
+    """
+    rows, image_ids, idxs = [], [], []
+    for row, point_id in enumerate(weighted):  # loop over the people's points
+        for e in rec.point3D(point_id).track.elements:  # loop over its views
+            rows.append(row)
+            image_ids.append(e.image_id)
+            idxs.append(e.point2D_idx)
+    row_of = np.asarray(rows, dtype=np.int64)
+    image_of = np.asarray(image_ids, dtype=np.int64)
+    idx_of = np.asarray(idxs, dtype=np.int64)
+    sigma = np.empty(len(row_of))
+    robust = np.empty(len(row_of))
+    xy = np.empty((len(row_of), 2))
+    posed = np.zeros(len(row_of), dtype=bool)
+    for image_id in np.unique(image_of).tolist():  # loop over images
+        sel = np.flatnonzero(image_of == image_id)
+        image = work.image(image_id)
+        sigma[sel] = people.sigma_px[image_id][idx_of[sel]]
+        robust[sel] = people.robust_px[image_id][idx_of[sel]]
+        points2D = image.points2D
+        xy[sel] = [points2D[k].xy for k in idx_of[sel].tolist()]
+        posed[sel] = problem.has_parameter_block(image.frame.rig_from_world.params)
+    sigma = np.round(sigma, 4)
+    xy /= sigma[:, None]
+    scale = np.round(robust / sigma, 3)
+    losses = {v: pyceres.CauchyLoss(v) for v in np.unique(scale[posed]).tolist()}
+    whitened: dict[tuple[int, float], np.ndarray] = {}
+    blocks: dict[int, tuple] = {}
+    alive: list = []
+    for o in np.flatnonzero(posed).tolist():  # loop over the observations
+        image_id = int(image_of[o])
+        if image_id not in blocks:
+            image = work.image(image_id)
+            blocks[image_id] = (
+                image.camera_id,
+                image.frame.rig_from_world.params,  # COLMAP's pose block
+                work.camera(image.camera_id),
+            )
+        camera_id, pose, camera = blocks[image_id]
+        key = (camera_id, float(sigma[o]))
+        if key not in whitened:
+            whitened[key] = _whitened_params(camera, key[1])
+            problem.add_parameter_block(whitened[key], len(whitened[key]))
+            problem.set_parameter_block_constant(whitened[key])
+        cost = cost_functions.ReprojErrorCost(camera.model, xy[o])
+        problem.add_residual_block(
+            cost, losses[float(scale[o])], [X[row_of[o]], pose, whitened[key]]
+        )
+        alive.append(cost)
+    return alive + list(whitened.values()) + list(losses.values())
