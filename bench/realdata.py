@@ -100,6 +100,7 @@ def run_instant(
     priors_dir: Path,
     augment_args: tuple[str, ...] = (),
     priors_args: tuple[str, ...] = (),
+    map_args: tuple[str, ...] = (),
 ) -> tuple[Metrics, dict]:
     """Database (images in the given order), priors (cached), augment, map, eval."""
     db = work / "database.db"
@@ -145,6 +146,7 @@ def run_instant(
             "--output-path",
             str(sparse),
             "--no-show-progress",
+            *list(map_args),
         ]
     )
     t_map = time.perf_counter() - t0
@@ -261,7 +263,15 @@ def main() -> None:
         "--priors-args", default="", help="extra `colmap-vc priors` arguments"
     )
     parser.add_argument(
-        "--out", default="realdata", help="folder under bench/out (priors cache)"
+        "--map-args", default="", help="extra `colmap-vc map` arguments"
+    )
+    parser.add_argument(
+        "--out",
+        default="realdata",
+        help="folder under bench/out (priors cache) and name of the JSON",
+    )
+    parser.add_argument(
+        "--no-docs", action="store_true", help="do not write docs/results.md"
     )
     args = parser.parse_args()
     setup_logging()
@@ -296,6 +306,7 @@ def main() -> None:
                     priors_dir,
                     tuple(args.augment_args.split()),
                     tuple(args.priors_args.split()),
+                    tuple(args.map_args.split()),
                 )
                 per_order.setdefault(k, {})[instant] = m
                 info[f"{instant}/order{k}"] = {**t, "order": order}
@@ -322,7 +333,7 @@ def main() -> None:
         }
     elapsed = time.perf_counter() - t_start
     write_json(
-        "realdata.json",
+        f"{args.out}.json",
         {"machine": machine(), "results": results, "elapsed_s": elapsed},
     )
     lines = [
@@ -349,21 +360,24 @@ def main() -> None:
         "",
         f"Measured at commit {machine()['commit']} by `.venv/bin/python "
         f"bench/realdata.py --datasets {' '.join(args.datasets)} --orders "
-        f"{args.orders}` ({elapsed / 60:.0f} min; raw numbers and per-pair errors in "
-        "`bench/out/realdata.json`). Each instant is mapped on its own (4 images); "
+        f"{args.orders}{f' --map-args={args.map_args}' if args.map_args else ''}` "
+        f"({elapsed / 60:.0f} min; raw numbers and per-pair errors in "
+        f"`bench/out/{args.out}.json`). Each instant is mapped on its own (4 images); "
         "pairs are pooled over the instants; an unregistered image's pairs count "
         "as 180 deg. Image order k > 0: the same images extracted in another order. "
         "Association: links between people of different images (same instant) "
         "against the hand labels of tests/data/pose2sim_people.json, summed over "
         "instants and orders.",
     ]
+    print("\n".join(lines))
+    if args.no_docs:
+        return
     replace_section(
         DOCS / "results.md",
         "realdata",
         "## Real photos, the user's path (one instant at a time)\n\n"
         + "\n".join(lines),
     )
-    print("\n".join(lines))
 
 
 if __name__ == "__main__":
