@@ -183,28 +183,38 @@ def _add_weighted(
     sigma = np.round(sigma, 4)
     xy /= sigma[:, None]
     scale = np.round(robust / sigma, 3)
-    losses = {v: pyceres.CauchyLoss(v) for v in np.unique(scale[posed]).tolist()}
-    whitened: dict[tuple[int, float], np.ndarray] = {}
-    blocks: dict[int, tuple] = {}
+    obs = np.flatnonzero(posed)
+    # One constant block of whitened camera parameters per (camera, sigma), one
+    # Cauchy loss per scale: indices per observation, then a lean loop.
+    camera_of = {i: work.image(i).camera_id for i in np.unique(image_of).tolist()}
+    cam = np.array([camera_of[i] for i in image_of[obs].tolist()], dtype=np.int64)
+    keys, key_of = np.unique(np.c_[cam, sigma[obs]], axis=0, return_inverse=True)
+    whitened = []
+    for camera_id, s in keys.tolist():  # loop over (camera, sigma) pairs
+        params = _whitened_params(work.camera(int(camera_id)), s)
+        problem.add_parameter_block(params, len(params))
+        problem.set_parameter_block_constant(params)
+        whitened.append(params)
+    loss_values, loss_of = np.unique(scale[obs], return_inverse=True)
+    losses = [pyceres.CauchyLoss(v) for v in loss_values.tolist()]
+    poses = {
+        i: work.image(i).frame.rig_from_world.params  # COLMAP's pose blocks
+        for i in np.unique(image_of[obs]).tolist()
+    }
+    models = {i: work.camera(camera_of[i]).model for i in poses}
+    points = list(X)  # row views: one parameter block per point
+    make = cost_functions.ReprojErrorCost
+    add = problem.add_residual_block
     alive: list = []
-    for o in np.flatnonzero(posed).tolist():  # loop over the observations
-        image_id = int(image_of[o])
-        if image_id not in blocks:
-            image = work.image(image_id)
-            blocks[image_id] = (
-                image.camera_id,
-                image.frame.rig_from_world.params,  # COLMAP's pose block
-                work.camera(image.camera_id),
-            )
-        camera_id, pose, camera = blocks[image_id]
-        key = (camera_id, float(sigma[o]))
-        if key not in whitened:
-            whitened[key] = _whitened_params(camera, key[1])
-            problem.add_parameter_block(whitened[key], len(whitened[key]))
-            problem.set_parameter_block_constant(whitened[key])
-        cost = cost_functions.ReprojErrorCost(camera.model, xy[o])
-        problem.add_residual_block(
-            cost, losses[float(scale[o])], [X[row_of[o]], pose, whitened[key]]
-        )
+    for image_id, row, k, loss, p in zip(  # loop over the observations
+        image_of[obs].tolist(),
+        row_of[obs].tolist(),
+        key_of.ravel().tolist(),
+        loss_of.ravel().tolist(),
+        xy[obs],
+        strict=True,
+    ):
+        cost = make(models[image_id], p)
+        add(cost, losses[loss], [points[row], poses[image_id], whitened[k]])
         alive.append(cost)
-    return alive + list(whitened.values()) + list(losses.values())
+    return alive + whitened + losses
