@@ -120,8 +120,8 @@ def one_run(scene: Path, work: Path, pairs: str, static: bool) -> dict:
         "associate": a.get("associate", 0.0) - a.get("link", 0.0),
         "verify": a.get("verify", 0.0),
         "write": a.get("write", 0.0) + a.get("assemble", 0.0),
-        "map": m.get("read", 0.0) + m.get("mapper", 0.0) + m.get("mesh_fallback", 0.0),
-        "refine": m.get("keypoint_ba", 0.0)
+        "map": m.get("read", 0.0) + m.get("mapper", 0.0),  # with the mesh fallback
+        "refine": m.get("refinement", 0.0)
         + m.get("checks", 0.0)
         + m.get("scale_write", 0.0),
     }

@@ -202,7 +202,7 @@ def test_a_two_view_geometry_stored_without_its_pose_gets_one() -> None:
 
     from colmap_vc.database import TwoViewGeometryRow
     from colmap_vc.evaluation import relative_pose_error
-    from colmap_vc.mapping_init import _pose_from_geometry
+    from colmap_vc.mapping.strategies import _pose_from_geometry
 
     rng = np.random.default_rng(0)
     camera = pycolmap.Camera(

@@ -1,28 +1,77 @@
-"""Mapping started from the people's meshes: two views, or all views at once.
+"""The mapping strategies, one function each: pycolmap's incremental and global
+mappers, and mapping started from the people's meshes (all views at once, or two
+views from their verified geometry).
 
-Used by :mod:`colmap_vc.mapping` where COLMAP's incremental start from two-view
-geometry is fragile: one person's two-view geometry can be mirrored, and two images
-give the incremental mapper nothing to check against.
+The meshes' starts exist where COLMAP's incremental start from two-view geometry
+is fragile: one person's two-view geometry can be mirrored, and two images give
+the incremental mapper nothing to check against. Which strategy runs is decided in
+one place, :mod:`colmap_vc.mapping.choice`.
 """
 
 from __future__ import annotations
 
 import logging
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
-from . import database
-from .evaluation import relative_pose, rotation_angle_deg
-from .gba.ceres import bundle_adjust_inplace
-from .mapping_options import Mapper, MappingOptions, incremental_options
-from .meshalign import mesh_alignment_poses
-from .structs import FloatArray, ScenePriors
+from .. import database
+from ..evaluation import relative_pose, rotation_angle_deg
+from ..gba.ceres import bundle_adjust_inplace
+from ..meshalign import mesh_alignment_poses
+from ..structs import FloatArray, ScenePriors
+from .options import Mapper, MappingOptions, global_options, incremental_options
 
 logger = logging.getLogger(__name__)
 
 MIN_MESH_INIT_POINTS = 20  # fewer triangulated points: too few for a stable BA
+
+
+def incremental(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    options: MappingOptions,
+    image_names: Sequence[str],
+    *,
+    only_these: bool = False,
+) -> dict[int, pycolmap.Reconstruction]:
+    """pycolmap's incremental mapper -> its models by folder number.
+
+    ``only_these``: map only ``image_names`` (one view per static camera).
+    """
+    registered = [0]
+
+    def on_init() -> None:
+        logger.info("initial pair chosen")
+
+    def on_next() -> None:
+        registered[0] += 1
+        if options.show_progress:
+            logger.info("registered image %d/%d", registered[0] + 2, len(image_names))
+
+    pipeline = incremental_options(options, len(image_names))
+    if only_these:
+        pipeline.image_names = list(image_names)
+    return pycolmap.incremental_mapping(
+        database_path,
+        image_dir,
+        output_dir,
+        options=pipeline,
+        initial_image_pair_callback=on_init,
+        next_image_callback=on_next,
+    )
+
+
+def global_(
+    database_path: Path, image_dir: Path, output_dir: Path, options: MappingOptions
+) -> dict[int, pycolmap.Reconstruction]:
+    """pycolmap's global mapper (GLOMAP) -> its models by folder number."""
+    return pycolmap.global_mapping(
+        database_path, image_dir, output_dir, options=global_options(options)
+    )
 
 
 def mesh_initialised(

@@ -14,14 +14,14 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from . import database
-from .estimators.body import anny_keypoint_mirror
-from .evaluation import relative_pose, rotation_angle_deg
-from .keypoint_tracks import person_identities
-from .meshalign import mesh_alignment_poses
-from .priors import read_priors
-from .static_cameras import StaticCameras, merge_priors
-from .structs import ScenePriors
+from .. import database
+from ..estimators.body import anny_keypoint_mirror
+from ..evaluation import relative_pose, rotation_angle_deg
+from ..keypoint_tracks import person_identities
+from ..meshalign import mesh_alignment_poses
+from ..priors import read_priors
+from ..static_cameras import StaticCameras, merge_priors
+from ..structs import ScenePriors
 
 logger = logging.getLogger(__name__)
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 import pycolmap
 
-from .keypoint_ba import KeypointBaOptions
-from .metric_scale import MetricScale
+from ..keypoint_ba import KeypointBaOptions
+from ..metric_scale import MetricScale
 
 
 class Mapper(enum.StrEnum):

@@ -1,0 +1,114 @@
+"""Which mapping strategy runs, decided in one place.
+
+- Two images (``auto``): the two-view start from their verified geometry, checked
+  against the meshes (:func:`strategies.two_view_initialised`).
+- ``mesh``: the mesh-initialised mapper; ``global``: pycolmap's global mapper;
+  ``incremental``: pycolmap's incremental mapper, as COLMAP runs it.
+- ``auto`` with more images: the incremental mapper, whose model is checked against
+  the coarse camera poses the meshes give (mesh alignment). When it contradicts
+  them (a mirrored two-view start, typical with one person) or registers fewer
+  images than the meshes can place, the mesh-initialised mapper replaces it if it
+  does better.
+"""
+
+from __future__ import annotations
+
+import logging
+import shutil
+from pathlib import Path
+
+import pycolmap
+
+from ..meshalign import mesh_alignment_poses
+from . import strategies
+from .inputs import MapInputs
+from .options import Mapper, MappingOptions
+from .priors import prior_deviation_deg
+
+logger = logging.getLogger(__name__)
+
+Models = dict[int | str, pycolmap.Reconstruction]
+
+
+def map_images(
+    inputs: MapInputs, image_dir: Path, output_dir: Path, options: MappingOptions
+) -> tuple[Models, int | str | None]:
+    """Run the chosen strategy -> (models by output folder name, the largest's)."""
+    db, priors = inputs.database_path, inputs.priors
+    if len(inputs.mapped) == 2 and options.mapper is Mapper.AUTO:
+        rec = strategies.two_view_initialised(
+            db, image_dir, output_dir / "0", options, priors
+        )
+        models: Models = {} if rec is None else {0: rec}
+    elif options.mapper is Mapper.MESH:
+        if priors is None:
+            raise ValueError("the mesh mapper needs the priors (--priors)")
+        rec = strategies.mesh_initialised(
+            db, image_dir, output_dir / "0", priors, options
+        )
+        models = {} if rec is None else {0: rec}
+    elif options.mapper is Mapper.GLOBAL:
+        models = dict(strategies.global_(db, image_dir, output_dir, options))
+    else:
+        models = dict(
+            strategies.incremental(
+                db,
+                image_dir,
+                output_dir,
+                options,
+                inputs.mapped,
+                only_these=inputs.static is not None,
+            )
+        )
+        if options.mapper is Mapper.AUTO and priors is not None:
+            models = _mesh_fallback(models, inputs, image_dir, output_dir, options)
+    best = max(models, key=lambda k: models[k].num_reg_images(), default=None)
+    return models, best
+
+
+def _mesh_fallback(
+    models: Models,
+    inputs: MapInputs,
+    image_dir: Path,
+    output_dir: Path,
+    options: MappingOptions,
+) -> Models:
+    """The incremental models, or the mesh-initialised one where it does better."""
+    priors = inputs.priors
+    assert priors is not None
+    if len(inputs.mapped) <= 2:
+        return models
+    key = max(models, key=lambda k: models[k].num_reg_images(), default=None)
+    best = None if key is None else models[key]
+    deviation = 180.0 if best is None else prior_deviation_deg(best, priors)
+    placeable = len(
+        mesh_alignment_poses(priors, image_names=set(inputs.views.image_names))
+    )
+    num_best = 0 if best is None else best.num_reg_images()
+    contradicts = deviation > options.max_prior_deviation_deg
+    if not contradicts and num_best >= placeable:
+        logger.info(
+            "the incremental model agrees with the mesh prior (median %.0f deg)",
+            deviation,
+        )
+        return models
+    logger.info(
+        "the incremental model %s: mesh-initialised mapping instead",
+        f"contradicts the mesh prior (median {deviation:.0f} deg > "
+        f"{options.max_prior_deviation_deg:.0f})"
+        if contradicts
+        else f"registers {num_best} images, the meshes place {placeable}",
+    )
+    rec = strategies.mesh_initialised(
+        inputs.database_path, image_dir, output_dir / "mesh", priors, options
+    )
+    if rec is not None and (
+        best is None
+        or rec.num_reg_images() > num_best
+        or (contradicts and rec.num_reg_images() >= 0.8 * num_best)
+    ):
+        for k in models:  # superseded: keep one answer on disk
+            shutil.rmtree(output_dir / str(k), ignore_errors=True)
+        return {"mesh": rec}
+    shutil.rmtree(output_dir / "mesh", ignore_errors=True)  # not adopted
+    return models

@@ -1,0 +1,133 @@
+"""What `map` writes and reports: the models numbered as COLMAP numbers them, the
+options beside the final one, a reason for every image left out, and the images of
+static cameras given their representative's pose."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pycolmap
+
+from .. import __version__, database, outputs
+from ..static_cameras import StaticCameras
+from .options import MappingOptions, MappingSummary
+
+OUTPUT_MARKER = outputs.marker_name("map")
+"""File `map` writes into its output folder: `--overwrite` removes only such folders."""
+
+
+OPTIONS_FILE = "map_options.json"
+"""Beside the final model: the options and inputs `map` ran with."""
+
+
+def number_models(output_dir: Path, best: Path | None) -> Path:
+    """The final model at ``output_dir/0``, as COLMAP numbers its first; smaller
+    models of other image groups (several components) follow at 1, 2, ... by size.
+
+    The mappers name their folders by their own order ("0", "1", ...; "mesh" for
+    the mesh-initialised one), and a superseded model is already removed.
+    """
+    folders = sorted(p for p in output_dir.iterdir() if (p / "images.bin").is_file())
+    if best is None or best not in folders:
+        return output_dir / "0"
+    size = {p: pycolmap.Reconstruction(p).num_reg_images() for p in folders}
+    others = sorted((p for p in folders if p != best), key=lambda p: (-size[p], p.name))
+    order = [best, *others]
+    staged = []
+    for k, folder in enumerate(order):  # two steps: "1" may become "0" and back
+        tmp = output_dir / f".model-{k}"
+        folder.rename(tmp)
+        staged.append(tmp)
+    for k, tmp in enumerate(staged):
+        tmp.rename(output_dir / str(k))
+    return output_dir / "0"
+
+
+def write_run_options(
+    model_dir: Path,
+    options: MappingOptions,
+    database_path: Path,
+    image_dir: Path,
+    priors_path: Path | None,
+    summary: MappingSummary,
+) -> None:
+    """What this model was made from and with, beside it (:data:`OPTIONS_FILE`)."""
+    record = {
+        "colmap_vc_version": __version__,
+        "pycolmap_version": pycolmap.__version__,
+        "database": str(database_path.resolve()),
+        "image_path": str(image_dir.resolve()),
+        "priors": None if priors_path is None else str(Path(priors_path).resolve()),
+        "options": outputs.jsonable(dataclasses.asdict(options)),
+        "registered": summary.num_registered,
+        "images": summary.num_images,
+        "timings_s": summary.timings_s,
+    }
+    (model_dir / OPTIONS_FILE).write_text(json.dumps(record, indent=1) + "\n")
+
+
+def why_unregistered(
+    database_path: Path, best: pycolmap.Reconstruction | None
+) -> dict[str, str]:
+    """A reason per image of the database missing from the model."""
+    views = database.read_views(database_path)
+    geometries = database.read_two_view_geometries(database_path, include_vc=True)
+    registered = (
+        set()
+        if best is None
+        else {im.name for im in best.images.values() if im.has_pose}
+    )
+    id_of_name = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
+    reg_ids = {id_of_name[n] for n in registered if n in id_of_name}
+    reasons = {}
+    for name, image_id in id_of_name.items():
+        if name in registered:
+            continue
+        pairs = [
+            p
+            for p, row in geometries.items()
+            if image_id in p and len(row.inlier_matches) > 0
+        ]
+        with_registered = [p for p in pairs if (set(p) - {image_id}) & reg_ids]
+        if not pairs:
+            reasons[name] = (
+                "no verified image pair: no classic matches survived verification "
+                "and no virtual correspondences (no priors, or no person shared "
+                "with other images)"
+            )
+        elif not with_registered:
+            reasons[name] = (
+                f"{len(pairs)} verified pair(s), none with a registered image "
+                "(a separate component of the scene graph)"
+            )
+        else:
+            reasons[name] = (
+                f"{len(with_registered)} verified pair(s) with registered images, but "
+                "registration failed (too few 2D-3D inliers)"
+            )
+    return reasons
+
+
+def add_static_members_inplace(
+    rec: pycolmap.Reconstruction, static: StaticCameras, views: database.DatabaseViews
+) -> None:
+    """Every image of a registered static camera gets its representative's pose."""
+    camera_of = dict(zip(views.image_names, views.camera_ids.tolist(), strict=True))
+    id_of = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
+    for rep in sorted(static.representative.values()):
+        image = rec.find_image_with_name(rep)
+        if image is None or not image.has_pose:
+            continue
+        pose = image.cam_from_world()
+        for name in static.members(rep):
+            if name == rep or rec.find_image_with_name(name) is not None:
+                continue
+            camera_id = int(camera_of[name])
+            if camera_id not in rec.cameras:
+                rec.add_camera_with_trivial_rig(views.cameras[camera_id])
+            rec.add_image_with_trivial_frame(
+                pycolmap.Image(name=name, camera_id=camera_id, image_id=id_of[name]),
+                pycolmap.Rigid3d(pose.rotation, pose.translation),
+            )

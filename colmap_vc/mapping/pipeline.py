@@ -1,0 +1,247 @@
+"""`colmap-vc map` as one pipeline: inputs, mapping, refinement, checks, outputs.
+
+1. The inputs are read once (:mod:`.inputs`) from a copy of the user's database.
+2. The strategy is chosen in one place (:mod:`.choice`).
+3. The refinement: the keypoint bundle adjustment, or the generalized one with
+   ``--gba`` (:mod:`colmap_vc.keypoint_ba`, docs/gba.md), with its camera check.
+4. The checks against the meshes: a camera that contradicts them is left out.
+5. The metric scale from the people's size.
+6. The outputs: the final model at ``OUTPUT/0`` with the options beside it.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import tempfile
+import time
+from pathlib import Path
+
+import pycolmap
+
+from .. import canonical, database, outputs
+from ..camera_check import classic_support
+from ..gba.ceres import PeopleNoise, bundle_adjust_inplace
+from ..keypoint_ba import keypoint_bundle_adjustment, with_loss_scale
+from ..metric_scale import (
+    MetricScale,
+    apply_metric_scale_inplace,
+    estimate_metric_scale,
+    write_metric_scale,
+)
+from .choice import map_images
+from .inputs import MapInputs, read_inputs
+from .options import MappingOptions, MappingSummary
+from .outputs import (
+    add_static_members_inplace,
+    number_models,
+    why_unregistered,
+    write_run_options,
+)
+from .priors import leave_out_prior_outliers_inplace
+
+logger = logging.getLogger(__name__)
+
+
+def run(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    options: MappingOptions | None = None,
+    *,
+    overwrite: bool = False,
+    priors_path: Path | None = None,
+) -> tuple[pycolmap.Reconstruction, MappingSummary]:
+    """Map a database; the final model goes to ``output_dir/0`` (with the options it
+    was made with, :data:`OPTIONS_FILE`) and is returned; smaller models of image
+    groups it could not join follow at ``output_dir/1``, ....
+
+    Raises:
+        FileNotFoundError: the database or image folder is missing.
+        FileExistsError: ``output_dir`` is not empty and ``overwrite`` is False.
+        RuntimeError: the mapper found no model (the reason is in the message).
+    """
+    options = options or MappingOptions()
+    database_path, image_dir, output_dir = (
+        Path(database_path),
+        Path(image_dir),
+        Path(output_dir),
+    )
+    if not database_path.is_file():
+        raise FileNotFoundError(f"database not found: {database_path}")
+    if not image_dir.is_dir():
+        raise FileNotFoundError(f"image folder not found: {image_dir}")
+    outputs.prepare_output_dir(
+        output_dir,
+        "map",
+        overwrite=overwrite,
+        inputs=[database_path, image_dir, *([priors_path] if priors_path else [])],
+    )
+    # pycolmap's mappers open their database read-write and migrate its schema:
+    # they get a copy, the user's database is only read (docs/database.md).
+    # Same input, same output: the copy is numbered by image name (the mappers
+    # break ties by ids, which follow the order extraction wrote the images).
+    with tempfile.TemporaryDirectory(prefix=".work-", dir=output_dir) as work:
+        copy = database.snapshot(database_path, Path(work) / "copy.db")
+        ordered = Path(work) / "database.db"
+        ids = canonical.canonical_copy(copy, ordered)
+        rec, summary = _map_copy(
+            ordered if ids else copy, image_dir, output_dir, options, priors_path
+        )
+    if ids is not None:  # the models get the user's ids back
+        for folder in sorted(output_dir.iterdir()):
+            if (folder / "images.bin").is_file():
+                canonical.relabel(pycolmap.Reconstruction(folder), *ids).write(folder)
+        rec = canonical.relabel(rec, *ids)
+    model_dir = number_models(output_dir, summary.model_dir)
+    write_run_options(
+        model_dir, options, database_path, image_dir, priors_path, summary
+    )
+    summary = dataclasses.replace(summary, model_dir=model_dir)
+    logger.info(
+        "mapping: %d model(s); the largest registers %d/%d images (%.1f s)",
+        summary.num_models,
+        summary.num_registered,
+        summary.num_images,
+        summary.elapsed_s,
+    )
+    for name, reason in summary.unregistered.items():
+        logger.info("not registered: %s: %s", name, reason)
+    return rec, summary
+
+
+def _map_copy(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    options: MappingOptions,
+    priors_path: Path | None,
+) -> tuple[pycolmap.Reconstruction, MappingSummary]:
+    """:func:`run` on a copy of the user's database (pycolmap may write to it)."""
+    pycolmap.set_random_seed(options.seed)
+    t0 = time.perf_counter()
+    inputs = read_inputs(database_path, options, priors_path)
+    timings = {"read": time.perf_counter() - t0}
+    lap = time.perf_counter()
+    models, best_key = map_images(inputs, image_dir, output_dir, options)
+    best = None if best_key is None else models[best_key]
+    timings["mapper"] = time.perf_counter() - lap
+    lap = time.perf_counter()
+    left_out: dict[str, str] = {}
+    mirrored: tuple[str, ...] = ()
+    people = None
+    if best is not None and options.keypoint_ba:
+        best, kba = keypoint_bundle_adjustment(
+            database_path, best, options.keypoint_ba_options, mirror=inputs.mirror
+        )
+        models[best_key] = best
+        left_out.update(kba.left_out or {})
+        mirrored, people = kba.mirrored, kba.people
+    timings["refinement"] = time.perf_counter() - lap
+    lap = time.perf_counter()
+    if best is not None and inputs.priors is not None:
+        left_out.update(_check_against_meshes(best, inputs, options, mirrored, people))
+    timings["checks"] = time.perf_counter() - lap
+    lap = time.perf_counter()
+    scale = _metric_scale(best, inputs, options)
+    if best is not None and inputs.static is not None:
+        add_static_members_inplace(best, inputs.static, inputs.views)
+    if best is not None and (
+        options.keypoint_ba
+        or left_out
+        or inputs.static is not None
+        or scale is not None
+    ):
+        best.write(output_dir / str(best_key))
+    if best is not None and scale is not None:
+        write_metric_scale(output_dir / str(best_key), scale)
+    timings["scale_write"] = time.perf_counter() - lap
+    reasons = {**why_unregistered(database_path, best), **left_out}
+    if best is None:
+        why = "; ".join(f"{n}: {r}" for n, r in list(reasons.items())[:5])
+        raise RuntimeError(
+            f"the mapper found no model ({len(inputs.views.image_names)} images). {why}"
+        )
+    summary = MappingSummary(
+        num_models=len(models),
+        num_images=len(inputs.views.image_names),
+        registered=sorted(im.name for im in best.images.values() if im.has_pose),
+        unregistered=reasons,
+        model_dir=output_dir / str(best_key),
+        elapsed_s=time.perf_counter() - t0,
+        metric_scale=scale,
+        timings_s=timings,
+    )
+    return best, summary
+
+
+def _check_against_meshes(
+    rec: pycolmap.Reconstruction,
+    inputs: MapInputs,
+    options: MappingOptions,
+    mirrored: tuple[str, ...],
+    people: PeopleNoise | None,
+) -> dict[str, str]:
+    """Leave out the cameras that contradict the meshes, on the final poses (the
+    refinement can carry a camera far from its start); re-adjust if any left.
+
+    An image re-posed with left and right exchanged has a mesh turned front to
+    back, and an image that classic keypoints place is not judged by its people:
+    the meshes judge neither.
+    """
+    assert inputs.priors is not None
+    pinned = {
+        rec.image(i).name
+        for i, n in classic_support(rec, inputs.num_classic).items()
+        if n >= options.keypoint_ba_options.min_classic_support
+    }
+    left_out = leave_out_prior_outliers_inplace(
+        rec,
+        inputs.priors,
+        options.max_image_prior_deviation_deg,
+        exempt=frozenset(mirrored) | frozenset(pinned),
+    )
+    if left_out:
+        kba_options = with_loss_scale(options.keypoint_ba_options, rec)
+        bundle_adjust_inplace(rec, kba_options.loss_scale_px, people)
+    return left_out
+
+
+def _metric_scale(
+    rec: pycolmap.Reconstruction | None, inputs: MapInputs, options: MappingOptions
+) -> MetricScale | None:
+    """Scale ``rec`` to metres from the people's size (in place) -> the estimate."""
+    if rec is None or inputs.priors is None or not options.metric_scale:
+        return None
+    scale = estimate_metric_scale(inputs.database_path, rec, inputs.priors)
+    if scale is None:
+        logger.info("metric scale: no triangulated keypoints: scale arbitrary")
+        return None
+    apply_metric_scale_inplace(rec, scale)
+    logger.info(
+        "metric scale: x%.4f to metres (spread %.1f%% over %d person views "
+        "of %d people)",
+        scale.scale,
+        100 * scale.spread,
+        scale.num_person_views,
+        scale.num_people,
+    )
+    return scale
+
+
+def run_incremental(
+    database_path: Path,
+    image_dir: Path,
+    output_dir: Path,
+    options: MappingOptions | None = None,
+) -> tuple[pycolmap.Reconstruction | None, MappingSummary | None]:
+    """Like :func:`run` but returns (None, None) instead of raising when no model.
+
+    Used by the benchmarks and the demo's variants, where a failure is a result to
+    report.
+    """
+    try:
+        return run(database_path, image_dir, output_dir, options, overwrite=True)
+    except RuntimeError as exc:
+        logger.info("%s", exc)
+        return None, None
