@@ -7,7 +7,7 @@ cam2_from_cam1 up to the meshes' errors (about 10-20 degrees), with no gross fai
 
 from __future__ import annotations
 
-from collections.abc import Mapping
+from collections.abc import Collection
 
 import numpy as np
 
@@ -56,7 +56,7 @@ def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
 
 
 def mesh_alignment_poses(
-    priors: ScenePriors, image_names: Mapping[str, object] | None = None
+    priors: ScenePriors, image_names: Collection[str] | None = None
 ) -> dict[str, FloatArray]:
     """cam_from_world (3, 4) per image from mesh alignment alone.
 

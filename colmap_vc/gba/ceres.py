@@ -73,6 +73,7 @@ def bundle_adjust_inplace(
     if not weighted:
         adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
         return adjuster.solve()
+    assert people is not None
     work = pycolmap.Reconstruction(rec)
     anchors = _anchors(work, weighted)
     for point_id in sorted(set(weighted) - set(anchors)):
@@ -129,6 +130,14 @@ def _anchors(rec: pycolmap.Reconstruction, weighted: list[int]) -> list[int]:
     return anchors
 
 
+def _pose_block(rec: pycolmap.Reconstruction, image: pycolmap.Image) -> np.ndarray:
+    """The image's pose parameters: a view of the model's memory, the block COLMAP's
+    problem holds (the image is its frame's only one)."""
+    pose = rec.frame(image.frame_id).rig_from_world
+    assert pose is not None, f"{image.name} has no pose"
+    return pose.params
+
+
 def _whitened_params(camera: pycolmap.Camera, sigma_px: float) -> np.ndarray:
     """Camera parameters whose pixels are the camera's divided by ``sigma_px``.
 
@@ -179,7 +188,7 @@ def _add_weighted(
         robust[sel] = people.robust_px[image_id][idx_of[sel]]
         points2D = image.points2D
         xy[sel] = [points2D[k].xy for k in idx_of[sel].tolist()]
-        posed[sel] = problem.has_parameter_block(image.frame.rig_from_world.params)
+        posed[sel] = problem.has_parameter_block(_pose_block(work, image))
     sigma = np.round(sigma, 4)
     xy /= sigma[:, None]
     scale = np.round(robust / sigma, 3)
@@ -197,9 +206,8 @@ def _add_weighted(
         whitened.append(params)
     loss_values, loss_of = np.unique(scale[obs], return_inverse=True)
     losses = [pyceres.CauchyLoss(v) for v in loss_values.tolist()]
-    poses = {
-        i: work.image(i).frame.rig_from_world.params  # COLMAP's pose blocks
-        for i in np.unique(image_of[obs]).tolist()
+    poses = {  # COLMAP's pose blocks
+        i: _pose_block(work, work.image(i)) for i in np.unique(image_of[obs]).tolist()
     }
     models = {i: work.camera(camera_of[i]).model for i in poses}
     points = list(X)  # row views: one parameter block per point

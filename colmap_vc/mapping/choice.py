@@ -48,18 +48,20 @@ def map_images(
         )
         models = {} if rec is None else {0: rec}
     elif options.mapper is Mapper.GLOBAL:
-        models = dict(strategies.global_(db, image_dir, output_dir, options))
+        models = {
+            k: r
+            for k, r in strategies.global_(db, image_dir, output_dir, options).items()
+        }
     else:
-        models = dict(
-            strategies.incremental(
-                db,
-                image_dir,
-                output_dir,
-                options,
-                inputs.mapped,
-                only_these=inputs.static is not None,
-            )
+        incremental = strategies.incremental(
+            db,
+            image_dir,
+            output_dir,
+            options,
+            inputs.mapped,
+            only_these=inputs.static is not None,
         )
+        models = {k: r for k, r in incremental.items()}
         if options.mapper is Mapper.AUTO and priors is not None:
             models = _mesh_fallback(models, inputs, image_dir, output_dir, options)
     best = max(models, key=lambda k: models[k].num_reg_images(), default=None)

@@ -130,7 +130,7 @@ def _map_copy(
     left_out: dict[str, str] = {}
     mirrored: tuple[str, ...] = ()
     people = None
-    if best is not None and options.keypoint_ba:
+    if best is not None and best_key is not None and options.keypoint_ba:
         best, kba = keypoint_bundle_adjustment(
             database_path, best, options.keypoint_ba_options, mirror=inputs.mirror
         )
@@ -202,8 +202,9 @@ def _check_against_meshes(
         exempt=frozenset(mirrored) | frozenset(pinned),
     )
     if left_out:
-        kba_options = with_loss_scale(options.keypoint_ba_options, rec)
-        bundle_adjust_inplace(rec, kba_options.loss_scale_px, people)
+        scale_px = with_loss_scale(options.keypoint_ba_options, rec).loss_scale_px
+        assert scale_px is not None
+        bundle_adjust_inplace(rec, scale_px, people)
     return left_out
 
 
