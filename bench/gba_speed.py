@@ -44,7 +44,7 @@ from colmap_vc import augment, database, mapping
 from colmap_vc.gba.ceres import bundle_adjust_inplace
 from colmap_vc.keypoint_ba import (
     KeypointBaOptions,
-    _add_weighted_surface,
+    add_weighted_surface,
     with_loss_scale,
 )
 from colmap_vc.keypoint_tracks import (
@@ -78,7 +78,7 @@ def gba_model(db: Path, rec: pycolmap.Reconstruction, options: KeypointBaOptions
     add_keypoint_points(out, tracks, options.min_track_length)
     bundle_adjust_inplace(out, options.loss_scale_px)
     t0 = time.perf_counter()
-    people, _ = _add_weighted_surface(db, out, tracks, registered, options)
+    people, _ = add_weighted_surface(db, out, tracks, registered, options)
     return out, people, time.perf_counter() - t0
 
 

@@ -14,6 +14,11 @@ correlated errors, docs/real-data.md).
 
 On pose2sim (docs/results.md) the pass converges to the same poses from the mapper's
 model, from the keypoint-only model and from the ground truth.
+
+With ``surface_tracks`` (``map --gba``) the pass is the generalized bundle
+adjustment instead: every surface VC joins its track by identity, and each
+person's observations in each image are weighted by their noise
+(:func:`add_weighted_surface`, docs/gba.md).
 """
 
 from __future__ import annotations
@@ -203,7 +208,7 @@ def keypoint_bundle_adjustment(
     people: PeopleNoise | None = None
     num_surface = int(sum(vc_obs)) - dropped
     if options.surface_tracks:
-        people, num_surface = _add_weighted_surface(
+        people, num_surface = add_weighted_surface(
             database_path, out, tracks, registered, options
         )
         bundle_adjust_inplace(out, options.loss_scale_px, people)
@@ -242,7 +247,7 @@ def keypoint_bundle_adjustment(
     return out, summary
 
 
-def _add_weighted_surface(
+def add_weighted_surface(
     database_path: Path,
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
@@ -251,7 +256,7 @@ def _add_weighted_surface(
 ) -> tuple[PeopleNoise, int]:
     """Add the surface tracks by identity to ``rec`` (its poses adjusted by the
     keypoints) and weigh every keypoint and surface observation by its cluster's
-    noise -> (image id -> per-observation noise px, surface observations added)."""
+    noise -> (the people's noise, surface observations added)."""
     surface = surface_tracks(database_path, registered)
     sigma = {
         int(i): np.full(rec.image(int(i)).num_points2D(), np.nan) for i in registered

@@ -120,7 +120,7 @@ def _anchors(rec: pycolmap.Reconstruction, weighted: list[int]) -> list[int]:
             covered |= {e.image_id for e in point.track.elements}
     need = set(rec.reg_image_ids()) - covered
     anchors = []
-    for point_id in weighted:  # greedy: most uncovered images first
+    for point_id in weighted:  # in id order: each that covers an uncovered image
         if not need:
             break
         seen = {e.image_id for e in rec.point3D(point_id).track.elements} & need
