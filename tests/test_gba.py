@@ -10,7 +10,7 @@ import pytest
 from colmap_vc.evaluation import evaluate_reconstruction
 from colmap_vc.gba.ceres import PeopleNoise, bundle_adjust_inplace
 from colmap_vc.gba.noise import cluster_noise, reprojection_residuals
-from colmap_vc.keypoint_tracks import KeypointTracks
+from colmap_vc.keypoint_tracks import KeypointTracks, triangulate_tracks
 
 
 def _observed(gt: pycolmap.Reconstruction, X: np.ndarray, noise: dict[int, float], rng):
@@ -105,13 +105,14 @@ def test_weighted_bundle_adjustment_recovers_perturbed_poses(dome_scene, rng):
 def test_cluster_noise_separates_shared_and_own_error(dome_scene, rng, turn_deg):
     """Pixels = the projection by a camera turned by ``turn_deg`` (the shared
     error of a body predicted turned: every point of the person moves together)
-    + independent noise sigma: both come back per cluster."""
+    + independent noise sigma, against points triangulated from them: both come
+    back per cluster."""
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
-    X = rng.normal(0, 0.4, (400, 3)) * [1, 2, 1] + [0, -0.9, 0]
+    X = rng.normal(0, 0.2, (400, 3)) * [1, 2, 1] + [0, -0.9, 0]  # a body
     sigma = 2.0
     rec, tracks = _observed(gt, X, dict.fromkeys(gt.reg_image_ids(), 0.0), rng)
     xy = tracks.xy_img.copy()
-    tau = {}
+    moved_all = xy.copy()
     for i in np.unique(tracks.image_id):
         sel = tracks.image_id == i
         image = rec.image(int(i))
@@ -120,24 +121,33 @@ def test_cluster_noise_separates_shared_and_own_error(dome_scene, rng, turn_deg)
         T = image.cam_from_world().matrix()
         Xc = X[tracks.track[sel]] @ T[:, :3].T + T[:, 3]
         moved = np.asarray(rec.camera(image.camera_id).img_from_cam(Xc @ dR.matrix().T))
-        tau[int(i)] = np.sqrt(((moved - xy[sel]) ** 2).mean())
+        moved_all[sel] = moved
         xy[sel] = moved + rng.normal(0, sigma, moved.shape)
-    noisy = KeypointTracks(
-        track=tracks.track,
-        image_id=tracks.image_id,
-        point2D_idx=tracks.point2D_idx,
-        xy_img=xy,
-        keys=tracks.keys,
-    )
-    noise = cluster_noise(rec, noisy, X)
+
+    def with_pixels(pixels: np.ndarray) -> KeypointTracks:
+        return KeypointTracks(
+            track=tracks.track,
+            image_id=tracks.image_id,
+            point2D_idx=tracks.point2D_idx,
+            xy_img=pixels,
+            keys=tracks.keys,
+        )
+
+    noisy = with_pixels(xy)
+    noise = cluster_noise(rec, noisy, triangulate_tracks(rec, noisy)[0])
     assert len(noise.count) == rec.num_reg_images()
-    assert np.allclose(noise.sigma_px, sigma, rtol=0.2)
-    true_tau = np.array([tau[int(i)] for i in noise.image_id])
+    # With turned cameras the points carry the other views' turns, which no motion
+    # of one camera explains: a little of it stays in the spread.
+    assert np.allclose(noise.sigma_px, sigma, rtol=0.2 if turn_deg == 0 else 0.25)
     if turn_deg == 0:
         assert (noise.tau_px < 0.3 * sigma).all()
     else:
-        assert np.median(true_tau) > 2 * sigma
-        assert np.allclose(noise.tau_px, true_tau, rtol=0.1, atol=0.3)
+        # The shared error against the points all views triangulate: the field
+        # of the turns alone, measured the same way without noise.
+        turned = with_pixels(moved_all)
+        alone = cluster_noise(rec, turned, triangulate_tracks(rec, turned)[0])
+        assert np.median(alone.tau_px) > 2 * sigma
+        assert np.allclose(noise.tau_px, alone.tau_px, rtol=0.15, atol=0.5)
     per_obs = noise.observation_sigma_px(0.5)
     expected = np.sqrt(noise.sigma_px**2 + noise.count * noise.tau_px**2)
     assert np.allclose(per_obs, expected[noise.cluster])

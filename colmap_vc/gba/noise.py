@@ -86,8 +86,19 @@ def cluster_noise(
     rec: pycolmap.Reconstruction, tracks: KeypointTracks, X: FloatArray
 ) -> ClusterNoise:
     """Spread and shared offset per (image, person) of ``tracks``' observations
-    against the track points ``X`` (T, 3) (module doc)."""
+    against the track points ``X`` (T, 3), triangulated from these observations
+    (module doc); tracks seen by one image do not count."""
     res = reprojection_residuals(rec, tracks, X)
+    # A point triangulated from its own n views fits them: the residuals keep
+    # 1 - 3 / (2 n) of the independent noise's variance (3 of the 2n coordinates
+    # are spent on the point). The spread is corrected for it, so a two-view
+    # track's observations count like any other's.
+    views = np.bincount(
+        tracks.track[np.isfinite(res).all(axis=1)], minlength=tracks.num_tracks
+    )[tracks.track]
+    res[views < 2] = np.nan
+    with np.errstate(divide="ignore", invalid="ignore"):
+        kept = np.sqrt(1.0 - 3.0 / (2.0 * views))
     ok = np.isfinite(res).all(axis=1)
     if tracks.keys is None or not ok.any():
         z = np.zeros(0, dtype=np.int64)
@@ -111,12 +122,14 @@ def cluster_noise(
     shared = _fitted_field(_pose_jacobians(rec, tracks, X)[ok], r, cl, len(keys))
     order = np.argsort(cl, kind="stable")
     starts = np.r_[0, np.cumsum(n)[:-1]]
-    dev = np.abs(r - shared)[order]
+    dev = (np.abs(r - shared) / kept[ok][:, None])[order]
     mad = _grouped_median(dev, starts, n)
     sigma = MAD_TO_SIGMA * mad.mean(axis=1)
-    # E|shared|^2 per coordinate = tau^2 + (6 / n) sigma^2 (6 fitted coefficients)
+    # E|shared|^2 per coordinate = tau^2 + (6 / n) s^2 (6 fitted coefficients),
+    # s the spread left in the residuals
     field2 = np.bincount(cl, weights=(shared**2).sum(axis=1), minlength=len(keys))
-    tau2 = np.maximum(field2 / (2 * n) - 6 * sigma**2 / n, 0.0)
+    left = np.bincount(cl, weights=kept[ok] ** 2, minlength=len(keys)) / n
+    tau2 = np.maximum(field2 / (2 * n) - 6 * left * sigma**2 / n, 0.0)
     cluster = np.full(len(tracks.track), -1, dtype=np.int64)
     cluster[np.flatnonzero(ok)] = cl
     return ClusterNoise(
