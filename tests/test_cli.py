@@ -69,6 +69,26 @@ def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
         )
         == 1
     )
+    # --gba: the generalized BA instead of the keypoint BA, recorded beside the model
+    gba_out = tmp_path / "sparse_gba"
+    assert (
+        main(
+            [
+                "map",
+                str(db),
+                "--image-path",
+                str(dome_scene / "images"),
+                "--output-path",
+                str(gba_out),
+                "--gba",
+            ]
+        )
+        == 0
+    )
+    assert "registered 6/6" in capsys.readouterr().out
+    ran = json.loads((gba_out / "0" / "map_options.json").read_text())
+    assert ran["options"]["keypoint_ba_options"]["surface_tracks"] is True
+    assert sorted(p.name for p in gba_out.iterdir() if p.is_dir()) == ["0"]
     metrics = tmp_path / "m.json"
     plot = tmp_path / "curve.png"
     assert (

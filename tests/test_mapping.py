@@ -88,6 +88,22 @@ def test_no_model_raises_with_the_reason(dome_scene, tmp_path):
         mapping.run(db, dome_scene / "images", tmp_path / "sparse")
 
 
+def test_the_mesh_mapper_without_priors_says_so(dome_scene, tmp_path):
+    """`--mapper mesh` on a database `augment` never saw: a clear error, and the
+    user's database is only read."""
+    db = tmp_path / "plain.db"
+    shutil.copyfile(dome_scene / "database.db", db)
+    before = hashlib.sha256(db.read_bytes()).hexdigest()
+    with pytest.raises(ValueError, match="needs the priors"):
+        mapping.run(
+            db,
+            dome_scene / "images",
+            tmp_path / "sparse",
+            mapping.MappingOptions(mapper=mapping.Mapper.MESH),
+        )
+    assert hashlib.sha256(db.read_bytes()).hexdigest() == before
+
+
 def test_missing_inputs(dome_scene, tmp_path):
     with pytest.raises(FileNotFoundError, match="database"):
         mapping.run(tmp_path / "none.db", dome_scene / "images", tmp_path / "o")
