@@ -110,17 +110,25 @@ def test_a_left_out_camera_no_longer_counts_in_keypoint_tracks(mapped):
     assert np.allclose(X[kept], X_all[kept])
 
 
+def _turned(
+    rec: pycolmap.Reconstruction, rng: np.random.Generator, deg: float
+) -> pycolmap.Reconstruction:
+    """A copy of ``rec`` with every camera turned by ``deg`` about a random axis."""
+    out = pycolmap.Reconstruction(rec)
+    for image in out.images.values():
+        w = rng.normal(size=3)
+        dR = pycolmap.Rotation3d(w / np.linalg.norm(w) * np.deg2rad(deg)).matrix()
+        T = image.cam_from_world().matrix()
+        new = pycolmap.Rigid3d(pycolmap.Rotation3d(dR @ T[:, :3]), T[:, 3])
+        out.frame(image.frame_id).rig_from_world = new
+    return out
+
+
 def test_keypoint_ba_pulls_perturbed_poses_back(dome_scene, mapped, rng):
     db, rec = mapped
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     before = evaluate_reconstruction(rec, gt).median_error_deg
-    perturbed = pycolmap.Reconstruction(rec)
-    for image in perturbed.images.values():
-        w = rng.normal(size=3)
-        dR = pycolmap.Rotation3d(w / np.linalg.norm(w) * np.deg2rad(5.0)).matrix()
-        T = image.cam_from_world().matrix()
-        new = pycolmap.Rigid3d(pycolmap.Rotation3d(dR @ T[:, :3]), T[:, 3])
-        perturbed.frame(image.frame_id).rig_from_world = new
+    perturbed = _turned(rec, rng, 5.0)
     assert evaluate_reconstruction(perturbed, gt).median_error_deg > 3.0
     snapshot = {i: im.cam_from_world().matrix() for i, im in perturbed.images.items()}
     out, summary = keypoint_bundle_adjustment(
@@ -337,13 +345,7 @@ def test_gba_weights_surface_tracks_by_their_noise(dome_scene, mapped, rng):
     poses come back from a 5 deg perturbation as with the keypoint BA."""
     db, rec = mapped
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
-    perturbed = pycolmap.Reconstruction(rec)
-    for image in perturbed.images.values():
-        w = rng.normal(size=3)
-        dR = pycolmap.Rotation3d(w / np.linalg.norm(w) * np.deg2rad(5.0)).matrix()
-        T = image.cam_from_world().matrix()
-        new = pycolmap.Rigid3d(pycolmap.Rotation3d(dR @ T[:, :3]), T[:, 3])
-        perturbed.frame(image.frame_id).rig_from_world = new
+    perturbed = _turned(rec, rng, 5.0)
     out, summary = keypoint_bundle_adjustment(
         db, perturbed, KeypointBaOptions(surface_tracks=True)
     )
