@@ -18,7 +18,9 @@ residuals that a small motion of its camera explains (least squares on the
 derivative of the projections by the camera's rotation and translation): the part
 that would move the camera, and a body predicted turned, shifted or at the wrong
 depth errs in that way. tau^2 is its mean square per coordinate less what noise
-alone would fit (6 sigma^2 / N); the spread sigma is the scaled MAD of the rest.
+alone would fit (6 s^2 / N, s the spread left in the residuals); the spread
+sigma is the scaled MAD of the rest, corrected for the fit of the points to
+their own views (a two-view track's residuals keep a quarter of the variance).
 """
 
 from __future__ import annotations
