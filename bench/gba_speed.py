@@ -41,7 +41,7 @@ from common import (
 )
 
 from colmap_vc import augment, database, mapping
-from colmap_vc.gba.ceres import bundle_adjust_inplace
+from colmap_vc.gba.ceres import ba_options, bundle_adjust_inplace
 from colmap_vc.keypoint_ba import (
     KeypointBaOptions,
     add_weighted_surface,
@@ -112,15 +112,7 @@ def main() -> None:
 
     def colmap_ba() -> int:
         copy = pycolmap.Reconstruction(model)
-        ba = pycolmap.BundleAdjustmentOptions(
-            refine_focal_length=False,
-            refine_principal_point=False,
-            refine_extra_params=False,
-            print_summary=False,
-        )
-        ba.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-        ba.ceres.loss_function_scale = options.loss_scale_px
-        pycolmap.bundle_adjustment(copy, ba)
+        pycolmap.bundle_adjustment(copy, ba_options(options.loss_scale_px))
         return -1  # pycolmap.bundle_adjustment reports no summary
 
     def colmap_problem() -> int:

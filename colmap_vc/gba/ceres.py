@@ -41,6 +41,20 @@ class PeopleNoise:
     robust_px: Mapping[int, FloatArray]  # (num points2D,) Cauchy scale px
 
 
+def ba_options(loss_scale_px: float) -> pycolmap.BundleAdjustmentOptions:
+    """COLMAP's BA options colmap-vc adjusts with: intrinsics fixed (known), a
+    Cauchy loss at ``loss_scale_px``."""
+    options = pycolmap.BundleAdjustmentOptions(
+        refine_focal_length=False,
+        refine_principal_point=False,
+        refine_extra_params=False,
+        print_summary=False,
+    )
+    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
+    options.ceres.loss_function_scale = loss_scale_px
+    return options
+
+
 def bundle_adjust_inplace(
     rec: pycolmap.Reconstruction,
     loss_scale_px: float,
@@ -57,14 +71,7 @@ def bundle_adjust_inplace(
             weighted by them (1 / sigma^2, Cauchy loss at ``robust_px``); None:
             plain COLMAP BA.
     """
-    options = pycolmap.BundleAdjustmentOptions(
-        refine_focal_length=False,
-        refine_principal_point=False,
-        refine_extra_params=False,
-        print_summary=False,
-    )
-    options.ceres.loss_function_type = pycolmap.LossFunctionType.CAUCHY
-    options.ceres.loss_function_scale = loss_scale_px
+    options = ba_options(loss_scale_px)
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in sorted(rec.reg_image_ids()):
         config.add_image(image_id)
