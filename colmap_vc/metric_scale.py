@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import logging
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -29,8 +30,8 @@ import numpy as np
 import pycolmap
 
 from . import database
-from .keypoint_tracks import keypoint_tracks, person_identities, triangulate_tracks
-from .structs import ScenePriors
+from .keypoint_tracks import keypoint_tracks, triangulate_tracks
+from .structs import FloatArray, IndexArray, PersonPrior, ScenePriors
 
 logger = logging.getLogger(__name__)
 
@@ -76,13 +77,10 @@ def estimate_metric_scale(
         return None
     min_track_length = min(min_track_length, max(len(registered), 2))
     X, counts = triangulate_tracks(rec, tracks)
-    identity = person_identities(database.read_person_associations(database_path))
-    person_of = {(i, ident): k for (i, k), ident in identity.items()}
-
     good = (counts[tracks.track] >= min_track_length) & np.isfinite(
         X[tracks.track]
     ).all(axis=1)
-    ratios: dict[tuple[int, int], list[float]] = {}
+    ratios: dict[tuple[int, int], float] = {}
     for image_id in np.unique(tracks.image_id[good]):  # loop over images
         sel = good & (tracks.image_id == image_id)
         name = name_of[int(image_id)]
@@ -91,18 +89,16 @@ def estimate_metric_scale(
         T = rec.image(int(image_id)).cam_from_world().matrix()
         d_model = np.linalg.norm(X[tracks.track[sel]] @ T[:, :3].T + T[:, 3], axis=1)
         keys = tracks.keys[tracks.track[sel]]
+        xy = tracks.xy_img[sel]
         persons = priors.images[name].persons
         for ident in np.unique(keys[:, 0]):  # loop over the image's people
-            k = person_of.get((int(image_id), int(ident)))
-            if k is None or k >= len(persons):
-                continue
-            p = persons[k]
-            if p.keypoints_cam is None:
-                continue
             rows = keys[:, 0] == ident
             j = keys[rows, 1] - offset
-            inside = (j >= 0) & (j < len(p.keypoints_cam))
-            j, d = j[inside], d_model[rows][inside]
+            k = _prior_person(persons, j, xy[rows])
+            if k is None:
+                continue
+            p = persons[k]
+            assert p.keypoints_cam is not None  # _prior_person checked
             valid = (
                 p.keypoints_valid[j]
                 if p.keypoints_valid is not None
@@ -111,11 +107,12 @@ def estimate_metric_scale(
             if not valid.any():
                 continue
             d_prior = np.linalg.norm(p.keypoints_cam[j[valid]], axis=1)
-            ratios[(int(image_id), int(ident))] = [float(np.median(d_prior / d[valid]))]
+            d = d_model[rows][valid]
+            ratios[(int(image_id), int(ident))] = float(np.median(d_prior / d))
     if not ratios:
         return None
-    values = np.array([v[0] for v in ratios.values()])
-    scale = float(np.median(values))
+    values = np.array(list(ratios.values()))
+    scale = hodges_lehmann(values)
     spread = float(1.4826 * np.median(np.abs(values / scale - 1.0)))
     return MetricScale(
         scale=scale,
@@ -123,6 +120,37 @@ def estimate_metric_scale(
         num_person_views=len(values),
         num_people=len({ident for _, ident in ratios}),
     )
+
+
+def _prior_person(
+    persons: Sequence[PersonPrior], j: IndexArray, xy: FloatArray
+) -> int | None:
+    """The index of the prior person whose keypoints ``j`` are at ``xy``: a VC
+    keypoint is its prior's 2D keypoint, and the database's person id is the
+    prior's own id where it has one, not its index. None: no such person (or it
+    has no 3D keypoints)."""
+    for k, p in enumerate(persons):  # loop over the image's people (a handful)
+        if p.keypoints_xy is None or p.keypoints_cam is None:
+            continue
+        if len(j) and (j.min() < 0 or j.max() >= len(p.keypoints_xy)):
+            continue
+        if len(j) and np.abs(p.keypoints_xy[j] - xy).max() < 0.5:
+            return k
+    return None
+
+
+def hodges_lehmann(values: FloatArray, max_pairs: int = 1_000_000) -> float:
+    """The median of the averages of all pairs of ``values`` (each with itself
+    too): a location estimate with a 29% breakdown point. Above ``max_pairs``
+    pairs, a fixed random sample of them (the same values, the same estimate)."""
+    v = np.sort(np.asarray(values, dtype=np.float64).ravel())
+    if v.size == 0:
+        raise ValueError("hodges_lehmann needs at least one value")
+    if v.size * (v.size + 1) // 2 <= max_pairs:
+        i, j = np.triu_indices(v.size)
+    else:  # values are sorted, so the subset does not depend on their order
+        i, j = np.random.default_rng(0).integers(0, v.size, size=(2, max_pairs))
+    return float(np.median((v[i] + v[j]) / 2.0))
 
 
 def apply_metric_scale_inplace(

@@ -1,0 +1,40 @@
+"""The metric scale's location estimate over the people's per-view size ratios."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from colmap_vc.metric_scale import hodges_lehmann
+
+
+def test_hodges_lehmann_is_the_median_of_pair_averages() -> None:
+    v = np.array([1.0, 2.0, 4.0])
+    # pair averages (each with itself too): 1, 1.5, 2.5, 2, 3, 4 -> median 2.25
+    assert hodges_lehmann(v) == pytest.approx(2.25)
+    assert hodges_lehmann(np.array([0.9, 1.1])) == pytest.approx(1.0)
+
+
+def test_size_errors_of_either_sign_average_out_where_the_median_does_not() -> None:
+    # A fit a few percent too large or too small in each view (no mass near 1):
+    # 7 views too large, 5 too small. The median picks a side, HL does not.
+    rng = np.random.default_rng(3)
+    e = rng.uniform(0.05, 0.15, 12) * np.r_[np.ones(7), -np.ones(5)]
+    v = 1.0 + e
+    assert abs(np.median(v) - 1.0) > 0.04
+    assert abs(hodges_lehmann(v) - 1.0) < abs(np.median(v) - 1.0) / 2
+
+
+def test_hodges_lehmann_resists_a_quarter_of_wild_views() -> None:
+    v = np.r_[np.random.default_rng(0).normal(1.0, 0.03, 30), np.full(10, 6.0)]
+    assert hodges_lehmann(v) == pytest.approx(1.0, abs=0.1)
+
+
+def test_hodges_lehmann_does_not_depend_on_order_even_when_sampled() -> None:
+    v = np.random.default_rng(1).normal(1.0, 0.1, 2000)
+    full = hodges_lehmann(v)
+    sampled = hodges_lehmann(v, max_pairs=50_000)
+    assert sampled == hodges_lehmann(v[::-1], max_pairs=50_000)
+    assert sampled == pytest.approx(full, abs=0.005)
+    with pytest.raises(ValueError, match="at least one"):
+        hodges_lehmann(np.array([]))
