@@ -29,6 +29,7 @@ import pycolmap
 import pycolmap.cost_functions as cost_functions
 
 from ..structs import FloatArray
+from .up import UpPriors, add_up_priors
 
 logger = logging.getLogger(__name__)
 
@@ -59,6 +60,7 @@ def bundle_adjust_inplace(
     rec: pycolmap.Reconstruction,
     loss_scale_px: float,
     people: PeopleNoise | None = None,
+    up: UpPriors | None = None,
 ) -> pycolmap.BundleAdjustmentSummary:
     """COLMAP's bundle adjustment of ``rec`` in place (intrinsics fixed).
 
@@ -70,6 +72,8 @@ def bundle_adjust_inplace(
         people: a model point all of whose observations have a noise there is
             weighted by them (1 / sigma^2, Cauchy loss at ``robust_px``); None:
             plain COLMAP BA.
+        up: measured up directions of some cameras (:mod:`colmap_vc.gba.up`);
+            used with two or more.
     """
     options = ba_options(loss_scale_px)
     config = pycolmap.BundleAdjustmentConfig()
@@ -77,9 +81,14 @@ def bundle_adjust_inplace(
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     weighted = [] if people is None else _weighted_points(rec, people)
+    if up is not None and len(set(up.image_id.tolist()) & set(rec.reg_image_ids())) < 2:
+        up = None  # one camera's up says nothing about the others
     if not weighted:
         adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
-        return adjuster.solve()
+        alive = _add_up(adjuster.problem, rec, up)
+        summary = adjuster.solve()
+        del alive
+        return summary
     assert people is not None
     work = pycolmap.Reconstruction(rec)
     anchors = _anchors(work, weighted)
@@ -90,6 +99,7 @@ def bundle_adjust_inplace(
         adjuster.problem.remove_parameter_block(work.point3D(point_id).xyz)
     X = np.array([rec.point3D(p).xyz for p in weighted], dtype=np.float64)
     keep_alive = _add_weighted(adjuster.problem, rec, work, weighted, X, people)
+    keep_alive += _add_up(adjuster.problem, work, up)
     summary = adjuster.solve()
     del keep_alive
     for image_id in work.reg_image_ids():  # loop over images: the solved poses
@@ -101,6 +111,25 @@ def bundle_adjust_inplace(
     for row, point_id in enumerate(weighted):  # loop over the people's points
         rec.point3D(point_id).xyz = X[row]
     return summary
+
+
+def _add_up(
+    problem: pyceres.Problem, rec: pycolmap.Reconstruction, up: UpPriors | None
+) -> list:
+    """The up residuals on ``rec``'s pose blocks in ``problem`` (none without
+    ``up``); returns what must stay alive until the solve."""
+    if up is None:
+        return []
+    blocks = {}
+    for image_id in up.image_id.tolist():  # loop over the measured cameras
+        if image_id in rec.images and rec.image(image_id).has_pose:
+            block = _pose_block(rec, rec.image(image_id))
+            if problem.has_parameter_block(block):
+                blocks[image_id] = block
+    if len(blocks) < 2:
+        return []
+    block, alive = add_up_priors(problem, blocks, up)
+    return [block, *alive]
 
 
 def _weighted_points(rec: pycolmap.Reconstruction, people: PeopleNoise) -> list[int]:

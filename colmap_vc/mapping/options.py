@@ -13,6 +13,7 @@ from pathlib import Path
 
 import pycolmap
 
+from ..gravity import GravityOptions
 from ..keypoint_ba import KeypointBaOptions
 from ..metric_scale import MetricScale
 
@@ -100,6 +101,18 @@ class MappingOptions:
     surface-VC points. A database without keypoint VCs is left as mapped."""
     keypoint_ba_options: KeypointBaOptions = field(default_factory=KeypointBaOptions)
     """Options of that pass."""
+    gravity: bool = False
+    """After the refinement, measure each camera's up from the scene's vertical
+    lines (door and window frames, pillars; colmap_vc/gravity.py: a static camera
+    pools all its images) and bundle-adjust once more with every camera's up
+    tied to one world up, weighed against the keypoints' pixel noise: the turn of
+    all cameras about the people that the keypoints barely see
+    (docs/results.md, "Static cameras: where the keypoints' optimum lies").
+    Needs the images and the priors (the people's up picks the vertical
+    direction; their boxes are masked); what was measured goes to gravity.json
+    beside the model."""
+    gravity_options: GravityOptions = field(default_factory=GravityOptions)
+    """Options of the vertical vanishing point."""
     metric_scale: bool = True
     """Scale the model to metres from the people's keypoints (colmap_vc/
     metric_scale.py; the scale and its spread go to metric_scale.json beside the

@@ -5,8 +5,9 @@
 3. The refinement: the keypoint bundle adjustment, or the generalized one with
    ``--gba`` (:mod:`colmap_vc.keypoint_ba`, docs/gba.md), with its camera check.
 4. The checks against the meshes: a camera that contradicts them is left out.
-5. The metric scale from the people's size.
-6. The outputs: the final model at ``OUTPUT/0`` with the options beside it.
+5. With ``--gravity``, the cameras' up from the scene's verticals (:mod:`.up`).
+6. The metric scale from the people's size.
+7. The outputs: the final model at ``OUTPUT/0`` with the options beside it.
 """
 
 from __future__ import annotations
@@ -39,6 +40,7 @@ from .outputs import (
     write_run_options,
 )
 from .priors import leave_out_prior_outliers_inplace
+from .up import refine_with_gravity_inplace, write_gravity
 
 logger = logging.getLogger(__name__)
 
@@ -143,6 +145,25 @@ def _map_copy(
         left_out.update(_check_against_meshes(best, inputs, options, mirrored, people))
     timings["checks"] = time.perf_counter() - lap
     lap = time.perf_counter()
+    gravity = None
+    if best is not None and options.gravity and inputs.priors is not None:
+        kba_options = with_loss_scale(options.keypoint_ba_options, best)
+        assert kba_options.loss_scale_px is not None
+        gravity = refine_with_gravity_inplace(
+            best,
+            inputs,
+            image_dir,
+            priors_path,
+            people,
+            options.gravity_options,
+            loss_scale_px=kba_options.loss_scale_px,
+            min_sigma_px=kba_options.min_sigma_px,
+            robust_sigmas=kba_options.robust_sigmas,
+        )
+    elif options.gravity:
+        logger.info("gravity: needs priors (the people's up): model unchanged")
+    timings["gravity"] = time.perf_counter() - lap
+    lap = time.perf_counter()
     scale = _metric_scale(best, inputs, options)
     if best is not None and inputs.static is not None:
         add_static_members_inplace(best, inputs.static, inputs.views)
@@ -151,10 +172,13 @@ def _map_copy(
         or left_out
         or inputs.static is not None
         or scale is not None
+        or gravity is not None
     ):
         best.write(output_dir / str(best_key))
     if best is not None and scale is not None:
         write_metric_scale(output_dir / str(best_key), scale)
+    if best is not None and gravity is not None:
+        write_gravity(output_dir / str(best_key), gravity)
     timings["scale_write"] = time.perf_counter() - lap
     reasons = {**why_unregistered(database_path, best), **left_out}
     if best is None:

@@ -1,0 +1,263 @@
+"""Each camera's "up" from the scene's vertical lines.
+
+People pin down where the cameras stand around them only weakly: turning every
+camera by a degree about the people, each about its own horizontal axis, moves
+the keypoints' reprojections by a tenth of a pixel (docs/results.md, "Static
+cameras: where the keypoints' optimum lies"), so the keypoints' small biases move
+the cameras by degrees. Rooms, gyms, stages and streets hold what fixes that
+turn: vertical edges (door and window frames, pillars, shelves), whose images meet
+at the vertical vanishing point, the direction of gravity in the camera. Every
+camera that sees the same gravity must be turned so that they agree
+(:func:`colmap_vc.gba.ceres.bundle_adjust_inplace` with ``gravity``).
+
+Per camera (a static camera: pooled over all its images, whose background is the
+same):
+
+1. Line segments (OpenCV's LSD) of at least ``min_segment_px``, outside the
+   people's boxes (limbs are near-vertical and not vertical), as planes through
+   the camera centre (undistorted with the camera's model).
+2. The vanishing point nearest the people's up: the people stand upright, so the
+   direction from their feet to their heads (the major axis of each person's
+   mesh) is gravity within ``max_hint_deg``. RANSAC over pairs of segments; a
+   segment supports a point when its endpoints lie within ``endpoint_tol_px`` of
+   the line from its midpoint to the point (LSD locates a sharp edge to a pixel
+   or better; two pixels let a different bundle of oblique lines win on
+   pose2sim).
+3. The direction refined by weighted least squares over its segments, with its
+   standard error from the same fit.
+"""
+
+from __future__ import annotations
+
+import logging
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pycolmap
+
+from .structs import BoolArray, FloatArray, PersonPrior
+
+logger = logging.getLogger(__name__)
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class GravityOptions:
+    """Options of the vertical vanishing point."""
+
+    min_segment_px: float = 30.0
+    """Shorter segments are left out: a segment's direction is as good as its
+    length over its endpoints' error."""
+    endpoint_tol_px: float = 1.0
+    """A segment supports a vanishing point when both its endpoints lie within
+    this of the line from its midpoint to the point (module doc)."""
+    max_hint_deg: float = 25.0
+    """Gravity lies within this of the people's up (feet to head)."""
+    min_segments: int = 20
+    """Fewer supporting segments: no vertical direction for that camera."""
+    num_trials: int = 2000
+    """RANSAC hypotheses (pairs of segments)."""
+    ransac_seed: int = 0
+    """Seed of those hypotheses."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Gravity:
+    """The direction of "up" in one camera's frame, from its vertical lines."""
+
+    up_cam: FloatArray  # (3,) unit vector, camera frame (x right, y down, z forward)
+    sigma_rad: float  # standard error of its direction
+    num_segments: int  # segments supporting it
+    num_images: int  # images pooled
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class Segments:
+    """Line segments as rays of their endpoints, in one camera's frame."""
+
+    ray1: FloatArray  # (S, 3) float64, z = 1
+    ray2: FloatArray  # (S, 3)
+    normal: FloatArray  # (S, 3) unit normal of the plane through both rays
+
+    @property
+    def midpoint(self) -> FloatArray:
+        return (self.ray1 + self.ray2) / 2.0
+
+
+def people_up(persons: Sequence[PersonPrior]) -> FloatArray | None:
+    """The people's up in the camera frame: each person's mesh major axis, turned
+    towards the image's top (-y), averaged. None without people."""
+    axes = []
+    for p in persons:  # loop over the image's people (a handful)
+        centred = p.vertices_cam - p.vertices_cam.mean(axis=0)
+        axis = np.linalg.svd(centred, full_matrices=False)[2][0]
+        axes.append(axis if axis[1] < 0 else -axis)
+    if not axes:
+        return None
+    up = np.mean(axes, axis=0)
+    return up / np.linalg.norm(up)
+
+
+def people_mask(
+    persons: Sequence[PersonPrior], camera: pycolmap.Camera, margin_px: float
+) -> BoolArray:
+    """(H, W) True inside the boxes of the people's meshes, grown by ``margin_px``."""
+    mask = np.zeros((camera.height, camera.width), dtype=bool)
+    for p in persons:  # loop over the image's people
+        front = p.vertices_cam[p.vertices_cam[:, 2] > 1e-6]
+        if not len(front):
+            continue
+        xy = np.asarray(camera.img_from_cam(front))
+        x0, y0 = np.floor(xy.min(axis=0) - margin_px).astype(int)
+        x1, y1 = np.ceil(xy.max(axis=0) + margin_px).astype(int)
+        mask[max(y0, 0) : max(y1, 0), max(x0, 0) : max(x1, 0)] = True
+    return mask
+
+
+def detect_segments(
+    image: np.ndarray,
+    camera: pycolmap.Camera,
+    mask: BoolArray,
+    options: GravityOptions,
+) -> Segments:
+    """LSD segments of a grey or BGR image, outside ``mask``, as rays."""
+    grey = image if image.ndim == 2 else cv2.cvtColor(image, cv2.COLOR_BGR2GRAY)
+    found = cv2.createLineSegmentDetector().detect(grey)[0]
+    lines = np.zeros((0, 4)) if found is None else found.reshape(-1, 4).astype(float)
+    length = np.linalg.norm(lines[:, 2:] - lines[:, :2], axis=1)
+    mid = np.round((lines[:, :2] + lines[:, 2:]) / 2).astype(int)
+    h, w = mask.shape
+    inside = mask[np.clip(mid[:, 1], 0, h - 1), np.clip(mid[:, 0], 0, w - 1)]
+    lines = lines[(length >= options.min_segment_px) & ~inside]
+    ray1 = np.c_[np.asarray(camera.cam_from_img(lines[:, :2])), np.ones(len(lines))]
+    ray2 = np.c_[np.asarray(camera.cam_from_img(lines[:, 2:])), np.ones(len(lines))]
+    normal = np.cross(ray1, ray2)
+    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    return Segments(ray1=ray1, ray2=ray2, normal=normal)
+
+
+def endpoint_distance(segments: Segments, points: FloatArray) -> FloatArray:
+    """(P, S) distance, normalised image units, of each segment's first endpoint
+    from the line through its midpoint and each vanishing point (P, 3)."""
+    mid = segments.midpoint
+    lines = np.cross(mid[None, :, :], points[:, None, :])  # (P, S, 3)
+    num = np.abs(np.einsum("psk,sk->ps", lines, segments.ray1))
+    return num / np.maximum(np.linalg.norm(lines[..., :2], axis=2), 1e-12)
+
+
+def vertical_direction(
+    segments: Segments,
+    up_hint: FloatArray,
+    focal_px: float,
+    options: GravityOptions,
+) -> tuple[FloatArray, float, int] | None:
+    """The vanishing direction nearest ``up_hint`` (module doc) -> (unit direction
+    towards up, its standard error in radians, supporting segments), or None."""
+    n = segments.normal
+    near = np.abs(n @ up_hint) < np.sin(np.radians(options.max_hint_deg))
+    if near.sum() < max(options.min_segments, 2):
+        return None
+    segs = Segments(ray1=segments.ray1[near], ray2=segments.ray2[near], normal=n[near])
+    n = segs.normal
+    tol = options.endpoint_tol_px / focal_px
+    rng = np.random.default_rng(options.ransac_seed)
+    pairs = rng.integers(0, len(n), size=(options.num_trials, 2))
+    v = np.cross(n[pairs[:, 0]], n[pairs[:, 1]])
+    norm = np.linalg.norm(v, axis=1)
+    ok = norm > 1e-9
+    v = v[ok] / norm[ok, None]
+    v *= np.sign(v @ up_hint)[:, None]
+    v = v[v @ up_hint > np.cos(np.radians(options.max_hint_deg))]
+    if not len(v):
+        return None
+    support = np.zeros(len(v), dtype=np.int64)
+    for start in range(0, len(v), 256):  # hypotheses in blocks: (256, S) at a time
+        block = endpoint_distance(segs, v[start : start + 256])
+        support[start : start + 256] = (block < tol).sum(axis=1)
+    best = v[int(np.argmax(support))]
+    for _ in range(5):  # refine on its support (weighted total least squares)
+        inlier = endpoint_distance(segs, best[None])[0] < tol
+        if inlier.sum() < options.min_segments:
+            return None
+        M, best = _refit(segs, inlier, best)
+    weights = _weights(segs, inlier)
+    residual = n[inlier] @ best
+    dof = max(int(inlier.sum()) - 2, 1)
+    s2 = float(weights @ residual**2) / dof
+    eig = np.linalg.eigvalsh(M)  # ascending; eig[0] ~ 0 along best
+    sigma = float(np.sqrt(s2 / max(eig[1], 1e-18)))
+    return best, sigma, int(inlier.sum())
+
+
+def _weights(segs: Segments, inlier: BoolArray) -> FloatArray:
+    """A segment's weight: its squared length (its direction's precision)."""
+    d = segs.ray2[inlier, :2] - segs.ray1[inlier, :2]
+    return np.einsum("ij,ij->i", d, d)
+
+
+def _refit(
+    segs: Segments, inlier: BoolArray, previous: FloatArray
+) -> tuple[FloatArray, FloatArray]:
+    """The direction that is closest to every supporting plane: the smallest
+    eigenvector of their weighted scatter, signed like ``previous``."""
+    n = segs.normal[inlier]
+    w = _weights(segs, inlier)
+    M = (n * w[:, None]).T @ n
+    v = np.linalg.eigh(M)[1][:, 0]
+    return M, v if v @ previous > 0 else -v
+
+
+def measure_gravity(
+    image_dir: Path,
+    groups: Mapping[str, Sequence[str]],
+    cameras: Mapping[str, pycolmap.Camera],
+    persons: Mapping[str, Sequence[PersonPrior]],
+    options: GravityOptions | None = None,
+) -> dict[str, Gravity]:
+    """Gravity per camera: ``groups`` maps a name (a static camera's
+    representative, or an image) to the images pooled for it, ``cameras`` each
+    image's camera, ``persons`` each image's people. Cameras without people (no
+    hint), without enough vertical segments, or whose images cannot be read are
+    left out."""
+    options = options or GravityOptions()
+    out: dict[str, Gravity] = {}
+    for key in sorted(groups):  # loop over cameras
+        parts, hints = [], []
+        camera = cameras[key]
+        for name in sorted(groups[key]):  # loop over the camera's images
+            people = persons.get(name, ())
+            hint = people_up(people)
+            image = cv2.imread(str(Path(image_dir) / name), cv2.IMREAD_GRAYSCALE)
+            if hint is None or image is None:
+                continue
+            hints.append(hint)
+            mask = people_mask(people, camera, options.min_segment_px)
+            parts.append(detect_segments(image, camera, mask, options))
+        if not parts:
+            continue
+        hint = np.mean(hints, axis=0)
+        segments = Segments(
+            ray1=np.concatenate([p.ray1 for p in parts]),
+            ray2=np.concatenate([p.ray2 for p in parts]),
+            normal=np.concatenate([p.normal for p in parts]),
+        )
+        found = vertical_direction(
+            segments, hint / np.linalg.norm(hint), camera.mean_focal_length(), options
+        )
+        if found is None:
+            logger.info("gravity: %s: no vertical lines", key)
+            continue
+        up, sigma, support = found
+        out[key] = Gravity(
+            up_cam=up, sigma_rad=sigma, num_segments=support, num_images=len(parts)
+        )
+        logger.info(
+            "gravity: %s: %d vertical segments in %d image(s), +-%.2f deg",
+            key,
+            support,
+            len(parts),
+            np.degrees(sigma),
+        )
+    return out

@@ -1,0 +1,228 @@
+"""Gravity from vertical lines, and the bundle adjustment that makes cameras agree
+on it."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pycolmap
+import pytest
+from scipy.spatial.transform import Rotation
+
+from colmap_vc.evaluation import evaluate_reconstruction
+from colmap_vc.gba.ceres import bundle_adjust_inplace
+from colmap_vc.gba.up import UpPriors, rotate_with_jacobian
+from colmap_vc.gravity import (
+    GravityOptions,
+    detect_segments,
+    people_up,
+    vertical_direction,
+)
+from colmap_vc.structs import PersonPrior
+
+WORLD_UP = np.array([0.0, 0.0, 1.0])
+
+
+def _camera() -> pycolmap.Camera:
+    return pycolmap.Camera(
+        model="PINHOLE", width=640, height=960, params=[700.0, 700.0, 320.0, 480.0]
+    )
+
+
+def _cam_from_world(pitch_deg: float, roll_deg: float) -> np.ndarray:
+    """A camera at the origin looking along world +Y, pitched down and rolled."""
+    look = np.array([[1.0, 0, 0], [0, 0, -1.0], [0, 1.0, 0]])  # x, y down, z fwd
+    tilt = Rotation.from_euler("xz", [-pitch_deg, roll_deg], degrees=True)
+    return tilt.as_matrix() @ look
+
+
+def _render(
+    R: np.ndarray, camera: pycolmap.Camera, rng, *, vertical: bool
+) -> np.ndarray:
+    """A grey image of 3D segments in front of the camera: vertical ones (door
+    frames, pillars) when ``vertical``, and horizontal ones in any direction."""
+    image = np.full((camera.height, camera.width), 120, np.uint8)
+    segments = []
+    for _ in range(60 if vertical else 0):
+        base = np.r_[rng.uniform(-4, 4), rng.uniform(3, 8), rng.uniform(-2.0, 0.0)]
+        segments.append((base, base + WORLD_UP * rng.uniform(0.8, 2.5)))
+    for _ in range(40):
+        base = np.r_[rng.uniform(-4, 4), rng.uniform(3, 8), rng.uniform(-2.0, 1.0)]
+        direction = np.r_[rng.normal(size=2), 0.0]
+        segments.append((base, base + direction / np.linalg.norm(direction) * 1.5))
+    for a, b in segments:
+        uv = np.asarray(camera.img_from_cam(np.stack([a, b]) @ R.T))
+        shade = int(rng.choice([30, 220]))
+        cv2.line(
+            image,
+            *[tuple(np.round(p * 16).astype(int)) for p in uv],
+            shade,
+            3,
+            cv2.LINE_AA,
+            4,
+        )
+    return image
+
+
+@pytest.mark.parametrize(("pitch", "roll"), [(25.0, 4.0), (5.0, -8.0)])
+def test_vertical_lines_give_the_camera_its_up(rng, pitch, roll) -> None:
+    camera = _camera()
+    R = _cam_from_world(pitch, roll)
+    truth = R @ WORLD_UP
+    image = _render(R, camera, rng, vertical=True)
+    mask = np.zeros(image.shape, bool)
+    segments = detect_segments(image, camera, mask, GravityOptions())
+    hint = Rotation.from_rotvec(np.radians(12) * np.array([1.0, 0, 0])).apply(truth)
+    found = vertical_direction(segments, hint, 700.0, GravityOptions())
+    assert found is not None
+    up, sigma, support = found
+    error = np.degrees(np.arccos(np.clip(up @ truth, -1, 1)))
+    assert error < 0.3, error
+    assert 0 < np.degrees(sigma) < 0.3 and support >= 20
+
+
+def test_no_vertical_lines_no_up(rng) -> None:
+    camera = _camera()
+    R = _cam_from_world(20.0, 0.0)
+    image = _render(R, camera, rng, vertical=False)
+    segments = detect_segments(
+        image, camera, np.zeros(image.shape, bool), GravityOptions()
+    )
+    assert vertical_direction(segments, R @ WORLD_UP, 700.0, GravityOptions()) is None
+
+
+def test_segments_inside_the_people_are_left_out(rng) -> None:
+    camera = _camera()
+    R = _cam_from_world(20.0, 0.0)
+    image = _render(R, camera, rng, vertical=True)
+    options = GravityOptions()
+    everything = detect_segments(image, camera, np.zeros(image.shape, bool), options)
+    mask = np.zeros(image.shape, bool)
+    mask[:, :320] = True
+    right = detect_segments(image, camera, mask, options)
+    assert 0 < len(right.normal) < len(everything.normal)
+    assert np.all(right.midpoint[:, 0] * 700.0 + 320.0 >= 320.0 - 1)
+
+
+def test_people_up_points_from_feet_to_head() -> None:
+    # A standing box-shaped "person" 1.7 m tall, seen by a camera pitched down.
+    R = _cam_from_world(30.0, 0.0)
+    corners = np.array(
+        [[x, y, z] for x in (-0.2, 0.2) for y in (4.8, 5.1) for z in (-1.5, 0.2)]
+    )
+    person = PersonPrior(
+        vertices_cam=np.repeat(corners, 20, axis=0) @ R.T,
+        faces=np.zeros((0, 3), np.int64),
+    )
+    up = people_up([person])
+    assert up is not None
+    assert np.degrees(np.arccos(up @ (R @ WORLD_UP))) < 1.0
+    assert people_up([]) is None
+
+
+def test_rotation_jacobian_matches_scipy(rng) -> None:
+    q = Rotation.random(random_state=3).as_quat()  # x, y, z, w
+    u = rng.normal(size=3)
+    Ru, J = rotate_with_jacobian(q, u)
+    np.testing.assert_allclose(Ru, Rotation.from_quat(q).apply(u), atol=1e-12)
+    for _ in range(3):  # along the unit sphere's tangent
+        d = rng.normal(size=4)
+        d -= (d @ q) * q
+        step = q + 1e-6 * d
+        numeric = (Rotation.from_quat(step / np.linalg.norm(step)).apply(u) - Ru) / 1e-6
+        np.testing.assert_allclose(numeric, J @ d, atol=1e-4)
+
+
+def _orbited(rec: pycolmap.Reconstruction, centre: np.ndarray, deg: float) -> None:
+    """Turn every camera about ``centre`` by ``deg`` about its own x axis."""
+    turn = Rotation.from_rotvec(np.radians(deg) * np.array([1.0, 0, 0])).as_matrix()
+    for image in rec.images.values():
+        T = image.cam_from_world().matrix()
+        c = T[:, :3] @ centre + T[:, 3]
+        rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(turn @ T[:, :3]), turn @ (T[:, 3] - c) + c
+        )
+
+
+def test_measured_up_fixes_the_turn_the_points_cannot_see(dome_scene, rng) -> None:
+    """Cameras around a small cluster of points, seen as if every camera were
+    turned by 3 deg about the cluster (a bias the points share): the points' own
+    optimum keeps the turn, and each camera's true up (weighed against points of
+    10 px noise) undoes it."""
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    centre = np.mean([im.projection_center() for im in gt.images.values()], axis=0)
+    X = centre + rng.normal(0, 0.3, (40, 3))
+    rec = pycolmap.Reconstruction(gt)
+    for point_id in list(rec.point3D_ids()):
+        rec.delete_point3D(point_id)
+    world_up = np.array([0.0, 0.0, 1.0])  # the synthetic world is Z up
+    ids = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
+    up = UpPriors(
+        image_id=ids,
+        up_cam=np.array(
+            [
+                rec.image(int(i)).cam_from_world().rotation.matrix() @ world_up
+                for i in ids
+            ]
+        ),
+        sigma_rad=np.full(len(ids), np.radians(1.0)),
+        pixel_noise_px=10.0,
+    )
+    _orbited(rec, centre, 3.0)
+    for image in rec.images.values():  # noise-free observations by the turned cameras
+        T = image.cam_from_world().matrix()
+        uv = np.asarray(
+            rec.camera(image.camera_id).img_from_cam(X @ T[:, :3].T + T[:, 3])
+        )
+        image.points2D = pycolmap.Point2DList([pycolmap.Point2D(p) for p in uv])
+    for k in range(len(X)):
+        track = pycolmap.Track()
+        for image_id in ids.tolist():
+            track.add_element(image_id, k)
+        rec.add_point3D(X[k], track)
+    assert _rotation_error_deg(rec, gt) > 2.0
+    plain = pycolmap.Reconstruction(rec)
+    bundle_adjust_inplace(plain, 1.0)
+    before = _rotation_error_deg(plain, gt)
+    assert before > 2.0
+    bundle_adjust_inplace(rec, 1.0, None, up)
+    # Every camera's up agrees; what is left is about the vertical (a point seen
+    # from a camera moved up or down, which the ups cannot see), under half.
+    seen = np.array(
+        [
+            rec.image(int(i)).cam_from_world().rotation.matrix().T @ g
+            for i, g in zip(ids, up.up_cam, strict=True)
+        ]
+    )
+    assert (
+        np.degrees(
+            np.arccos(
+                np.clip(seen @ seen.mean(0) / np.linalg.norm(seen.mean(0)), -1, 1)
+            )
+        ).max()
+        < 0.2
+    )
+    assert _rotation_error_deg(rec, gt) < before / 2
+
+
+def _rotation_error_deg(rec: pycolmap.Reconstruction, gt: pycolmap.Reconstruction):
+    """Median relative-rotation error over the camera pairs."""
+    pairs = evaluate_reconstruction(rec, gt).pairs
+    return float(np.median([p.rotation_deg for p in pairs]))
+
+
+def test_up_priors_check_their_shapes() -> None:
+    with pytest.raises(ValueError, match="UpPriors"):
+        UpPriors(
+            image_id=np.array([1, 2]),
+            up_cam=np.zeros((3, 3)),
+            sigma_rad=np.ones(2),
+            pixel_noise_px=1.0,
+        )
+    with pytest.raises(ValueError, match="positive"):
+        UpPriors(
+            image_id=np.array([1]),
+            up_cam=np.zeros((1, 3)),
+            sigma_rad=np.zeros(1),
+            pixel_noise_px=1.0,
+        )
