@@ -57,9 +57,11 @@ def main() -> None:
     static = OUT / "static_cameras.json"
     real = {}
     if static.exists():
-        for ds, r in json.loads(static.read_text())["results"].items():
-            if "distance_ratio" in r:
-                real[f"pose2sim_{ds}, static cameras (20 images)"] = r["distance_ratio"]
+        for ds, by_variant in json.loads(static.read_text())["results"].items():
+            for variant, r in by_variant.items():  # `map`, `map --gravity`
+                if "distance_ratio" in r:
+                    key = f"pose2sim_{ds}, static cameras (20 images), `{variant}`"
+                    real[key] = r["distance_ratio"]
     write_json(
         "metric_scale.json", {"machine": machine(), "synthetic": rows, "real": real}
     )
