@@ -58,7 +58,7 @@ def main() -> None:
     real = {}
     if static.exists():
         for ds, by_variant in json.loads(static.read_text())["results"].items():
-            for variant, r in by_variant.items():  # `map`, `map --gravity`
+            for variant, r in by_variant.items():  # `map --no-gravity`, `map`
                 if "distance_ratio" in r:
                     key = f"pose2sim_{ds}, static cameras (20 images), `{variant}`"
                     real[key] = r["distance_ratio"]

@@ -13,6 +13,8 @@ them. Priors are computed once for the 80 frames (the estimator works per image)
 
     .venv/bin/python bench/static_instants.py [--instants 1 2 5 10 20]
 
+`map` runs twice on each augmented database: with `--no-gravity` and as is.
+
 Writes bench/out/static_instants.json and the "instants" section of docs/results.md.
 """
 
@@ -46,6 +48,7 @@ logger = logging.getLogger("bench.static_instants")
 WHEEL = "pose2sim-0.10.49-py3-none-any.whl"
 VIDEOS = "Pose2Sim/Demo_SinglePerson/videos"
 PATTERN = r"(cam\d+)_f"
+VARIANTS = {"map --no-gravity": ["--no-gravity"], "map": []}
 CACHE = OUT / "cache"
 
 
@@ -85,10 +88,14 @@ def subset_priors(priors: Path, names: list[str], out: Path) -> Path:
     return out
 
 
+def cam_of(name: str) -> str:
+    """The camera of a frame's name (cam01_f000123.jpg -> cam01)."""
+    return name.split("_")[0]
+
+
 def run(num: int, instants: list[int], work: Path, frames: Path, priors: Path) -> dict:
     data = SHARED / "pose2sim_single"
     calib, gt_shared = load_calibration(data)
-    cam_of = lambda name: name.split("_")[0]  # noqa: E731
     cameras = {cam_of(n): c for n, c in calib.items()}
     gt_cam = {cam_of(n): g for n, g in gt_shared.items()}
     names = sorted(
@@ -105,15 +112,28 @@ def run(num: int, instants: list[int], work: Path, frames: Path, priors: Path) -
     args = ["--static-cameras", PATTERN, "--no-show-progress"]
     code = cli.main(["augment", str(db), "--priors", str(sub), *args])
     assert code == 0, f"augment failed ({code})"
-    sparse = row / "sparse"
-    code = cli.main(
-        [
-            *("map", str(db), "--image-path", str(row / "images")),
-            *("--output-path", str(sparse), *args),
-        ]
-    )
     seconds = time.perf_counter() - t0
-    rec = _largest_model(sparse) if code == 0 else None
+    out = {}
+    for variant, extra in VARIANTS.items():  # the same augmented database
+        sparse = row / ("sparse" + "_".join(["", *(a.strip("-") for a in extra)]))
+        t0 = time.perf_counter()
+        code = cli.main(
+            [
+                *("map", str(db), "--image-path", str(row / "images")),
+                *("--output-path", str(sparse), *args, *extra),
+            ]
+        )
+        out[variant] = _evaluate(_largest_model(sparse) if code == 0 else None, gt_cam)
+        out[variant] |= {
+            "instants": instants[:num],
+            "images": len(names),
+            "seconds_augment_map": seconds + time.perf_counter() - t0,
+        }
+    return out
+
+
+def _evaluate(rec, gt_cam: dict) -> dict:
+    """Pose accuracy of one model against the calibration (6 camera pairs)."""
     pred = {}
     if rec is not None:
         pred = {
@@ -125,15 +145,12 @@ def run(num: int, instants: list[int], work: Path, frames: Path, priors: Path) -
     errors = np.array([p.error_deg for p in metrics.pairs])
     aucs = pose_auc(errors, THRESHOLDS_DEG)
     return {
-        "instants": instants[:num],
-        "images": len(names),
         "registered": 0 if rec is None else int(rec.num_reg_images()),
         "auc": {f"{t:g}": 100 * a for t, a in zip(THRESHOLDS_DEG, aucs, strict=True)},
         "median_error_deg": float(np.median(errors)),
         "rotation_deg": [round(p.rotation_deg, 2) for p in metrics.pairs],
         "pairs": [round(float(e), 2) for e in errors],
         "distance_ratio": camera_distance_ratio(pred, gt_cam),
-        "seconds_augment_map": seconds,
     }
 
 
@@ -176,19 +193,22 @@ def main() -> None:
     results = {n: run(n, instants, work, frames, priors) for n in args.instants}
     write_json("static_instants.json", {"machine": machine(), "results": results})
     lines = [
-        "| instants | images | registered | AUC@15 | AUC@30 | AUC@45 "
+        "| instants | `map` | images | registered | AUC@15 | AUC@30 | AUC@45 "
         "| median pair error (deg) | pair errors (deg) "
         "| camera distances / calibration |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for n, r in results.items():
-        a = r["auc"]
-        lines.append(
-            f"| {n} | {r['images']} | {r['registered']}/{r['images']} | {a['15']:.1f} "
-            f"| {a['30']:.1f} | {a['45']:.1f} | {r['median_error_deg']:.2f} "
-            f"| {' '.join(f'{e:.1f}' for e in sorted(r['pairs']))} "
-            f"| {r['distance_ratio']:.3f} |"
-        )
+    for n, by_variant in results.items():
+        for variant, r in by_variant.items():
+            a = r["auc"]
+            lines.append(
+                f"| {n} | `{variant}` | {r['images']} "
+                f"| {r['registered']}/{r['images']} | {a['15']:.1f} "
+                f"| {a['30']:.1f} | {a['45']:.1f} "
+                f"| {r['median_error_deg']:.2f} "
+                f"| {' '.join(f'{e:.1f}' for e in sorted(r['pairs']))} "
+                f"| {r['distance_ratio']:.3f} |"
+            )
     lines += [
         "",
         f"Measured at commit {machine()['commit']} by `.venv/bin/python "
@@ -196,8 +216,9 @@ def main() -> None:
         "the four videos of Pose2Sim's Demo_SinglePerson (pose2sim 0.10.49 on PyPI, "
         f"frame offsets {offsets} from ../shared/data/pose2sim_single/cameras.json), "
         "`colmap-vc frames` (20 instants by farthest-point sampling; the first N "
-        "for N instants), `priors`, `augment` and `map` with `--static-cameras "
-        f"'{PATTERN}'`; the six camera pairs against the calibration.",
+        "for N instants), `priors`, `augment --static-cameras "
+        f"'{PATTERN}'`, then `map` with the same option on it, with `--no-gravity` "
+        "and as is; the six camera pairs against the calibration.",
     ]
     replace_section(
         DOCS / "results.md",

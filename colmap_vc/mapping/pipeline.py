@@ -5,7 +5,8 @@
 3. The refinement: the keypoint bundle adjustment, or the generalized one with
    ``--gba`` (:mod:`colmap_vc.keypoint_ba`, docs/gba.md), with its camera check.
 4. The checks against the meshes: a camera that contradicts them is left out.
-5. With ``--gravity``, the cameras' up from the scene's verticals (:mod:`.up`).
+5. The cameras' up from the scene's vertical lines (:mod:`.up`; ``--no-gravity``
+   skips it).
 6. The metric scale from the people's size.
 7. The outputs: the final model at ``OUTPUT/0`` with the options beside it.
 """

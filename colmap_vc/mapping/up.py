@@ -1,4 +1,4 @@
-"""`map --gravity`: the cameras agree on "up", measured from the scene's verticals.
+"""`map`'s gravity step: the cameras agree on "up", measured from the scene's verticals.
 
 After the refinement, each registered camera's gravity is measured from its images'
 vertical lines (:mod:`colmap_vc.gravity`; a static camera pools all its images),
