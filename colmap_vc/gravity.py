@@ -154,10 +154,16 @@ def _joined(ray1: FloatArray, ray2: FloatArray, tol: float) -> Segments:
     if len(normal) < 2:
         return Segments(ray1=ray1, ray2=ray2, normal=normal)
     scale = np.linalg.norm(normal[:, :2], axis=1)  # line i: normal_i . (x, y, 1) = 0
-    d1 = np.abs(normal @ ray1.T) / scale[:, None]  # (i, j): j's ends from line i
-    d2 = np.abs(normal @ ray2.T) / scale[:, None]
-    near = (d1 < tol) & (d2 < tol)
-    graph = csr_matrix(near & near.T)
+    rows, cols = [], []
+    for start in range(0, len(normal), 512):  # (512, S) at a time: 4k images
+        n = normal[start : start + 512] / scale[start : start + 512, None]
+        near = (np.abs(n @ ray1.T) < tol) & (np.abs(n @ ray2.T) < tol)  # j on line i
+        i, j = np.nonzero(near)
+        rows.append(i + start)
+        cols.append(j)
+    i, j = np.concatenate(rows), np.concatenate(cols)
+    graph = csr_matrix((np.ones(len(i), bool), (i, j)), shape=(len(normal),) * 2)
+    graph = graph.multiply(graph.T)  # both ways: each on the other's line
     _, group = connected_components(graph, directed=False)
     order = np.argsort(group, kind="stable")
     starts = np.flatnonzero(np.r_[True, np.diff(group[order]) != 0])
@@ -215,9 +221,10 @@ def vertical_direction(
     if not len(v):
         return None
     support = np.zeros(len(v), dtype=np.int64)
-    for start in range(0, len(v), 256):  # hypotheses in blocks: (256, S) at a time
-        block = endpoint_distance(segs, v[start : start + 256])
-        support[start : start + 256] = (block < tol).sum(axis=1)
+    step = max(1, 2_000_000 // len(n))  # hypotheses per block: (step, S) distances
+    for start in range(0, len(v), step):
+        block = endpoint_distance(segs, v[start : start + step])
+        support[start : start + step] = (block < tol).sum(axis=1)
     best = v[int(np.argmax(support))]
     for _ in range(5):  # refine on its support (weighted total least squares)
         inlier = endpoint_distance(segs, best[None])[0] < tol
