@@ -25,7 +25,8 @@ same):
    or better; two pixels let a different bundle of oblique lines win on
    pose2sim).
 3. The direction refined by weighted least squares over its segments, with its
-   standard error from the same fit.
+   standard error from the same fit (a static camera's images repeat the same
+   background lines: scaled by the square root of their number).
 4. None when another vanishing point, farther than three standard errors (after
    its own refinement), has as many lines within counting noise (two standard
    deviations of a count): in one
@@ -200,9 +201,15 @@ def vertical_direction(
     up_hint: FloatArray,
     focal_px: float,
     options: GravityOptions,
+    repeats: int = 1,
 ) -> tuple[FloatArray, float, int] | None:
     """The vanishing direction nearest ``up_hint`` (module doc) -> (unit direction
-    towards up, its standard error in radians, supporting segments), or None."""
+    towards up, its standard error in radians, supporting segments), or None.
+
+    ``repeats``: how many images of one static camera the segments pool. Their
+    background lines are the same lines seen again, so the fit is about as
+    certain as one image's: its standard error is scaled by sqrt(repeats).
+    """
     n = segments.normal
     near = np.abs(n @ up_hint) < np.sin(np.radians(options.max_hint_deg))
     if near.sum() < max(options.min_segments, 2):
@@ -236,7 +243,7 @@ def vertical_direction(
     dof = max(int(inlier.sum()) - 2, 1)
     s2 = float(weights @ residual**2) / dof
     eig = np.linalg.eigvalsh(M)  # ascending; eig[0] ~ 0 along best
-    sigma = float(np.sqrt(s2 / max(eig[1], 1e-18)))
+    sigma = float(np.sqrt(s2 / max(eig[1], 1e-18) * repeats))
     # Another vanishing point that the best one's uncertainty cannot explain,
     # supported within counting noise as well: the image does not say which.
     count = int(inlier.sum())
@@ -325,7 +332,11 @@ def measure_gravity(
             normal=np.concatenate([p.normal for p in parts]),
         )
         found = vertical_direction(
-            segments, hint / np.linalg.norm(hint), camera.mean_focal_length(), options
+            segments,
+            hint / np.linalg.norm(hint),
+            camera.mean_focal_length(),
+            options,
+            repeats=len(parts),
         )
         if found is None:
             logger.info("gravity: %s: no vertical lines", key)

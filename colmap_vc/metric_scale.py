@@ -15,7 +15,7 @@ spread is that of the (image, person) ratios (a robust standard deviation, relat
 ``num_people`` says over how many identities it was taken.
 
 On pose2sim_single (one real person, four cameras, five instants) the camera
-distances come out 3.5% short of the calibration, on pose2sim_multi 4.0% long
+distances come out 3.8% short of the calibration, on pose2sim_multi 3.7% long
 (docs/results.md, "Metric scale from the people"). There the views of one person
 agree within about 3% and the people differ by up to 15%: real fits err per
 person, so the scale is as good as the people's average size, and the synthetic

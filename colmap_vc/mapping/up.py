@@ -111,11 +111,7 @@ def refine_with_gravity_inplace(
         up = UpPriors(
             image_id=np.array([registered[k] for k in keys], dtype=np.int64),
             up_cam=np.array([measured[k].up_cam for k in keys]),
-            # The segments of a static camera's images are the same background
-            # lines seen again: the pooled fit is as certain as one image's.
-            sigma_rad=np.array(
-                [measured[k].sigma_rad * np.sqrt(measured[k].num_images) for k in keys]
-            ),
+            sigma_rad=np.array([measured[k].sigma_rad for k in keys]),
             pixel_noise_px=noise,
             robust_sigmas=robust_sigmas,
         )
