@@ -80,6 +80,7 @@ class Gravity:
     sigma_rad: float  # standard error of its direction
     num_segments: int  # segments supporting it
     num_images: int  # images pooled
+    lines_px: FloatArray  # (num_segments, 4) x1 y1 x2 y2, pixels (COLMAP's centres)
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -139,7 +140,7 @@ def detect_segments(
     mid = np.round((lines[:, :2] + lines[:, 2:]) / 2).astype(int)
     h, w = mask.shape
     inside = mask[np.clip(mid[:, 1], 0, h - 1), np.clip(mid[:, 0], 0, w - 1)]
-    lines = lines[(length >= options.min_segment_px) & ~inside]
+    lines = lines[(length >= options.min_segment_px) & ~inside] + 0.5  # -> COLMAP's
     ray1 = np.c_[np.asarray(camera.cam_from_img(lines[:, :2])), np.ones(len(lines))]
     ray2 = np.c_[np.asarray(camera.cam_from_img(lines[:, 2:])), np.ones(len(lines))]
     tol = options.endpoint_tol_px / camera.mean_focal_length()
@@ -202,9 +203,9 @@ def vertical_direction(
     focal_px: float,
     options: GravityOptions,
     repeats: int = 1,
-) -> tuple[FloatArray, float, int] | None:
+) -> tuple[FloatArray, float, Segments] | None:
     """The vanishing direction nearest ``up_hint`` (module doc) -> (unit direction
-    towards up, its standard error in radians, supporting segments), or None.
+    towards up, its standard error in radians, its supporting segments), or None.
 
     ``repeats``: how many images of one static camera the segments pool. Their
     background lines are the same lines seen again, so the fit is about as
@@ -251,7 +252,11 @@ def vertical_direction(
     if rival >= count - 2.0 * np.sqrt(count):
         logger.debug("gravity: two vanishing points: %d and %d lines", count, rival)
         return None
-    return best, sigma, count
+    return (
+        best,
+        sigma,
+        Segments(ray1=segs.ray1[inlier], ray2=segs.ray2[inlier], normal=n[inlier]),
+    )
 
 
 def _rival_support(
@@ -341,9 +346,17 @@ def measure_gravity(
         if found is None:
             logger.info("gravity: %s: no vertical lines", key)
             continue
-        up, sigma, support = found
+        up, sigma, lines = found
+        support = len(lines.normal)
         out[key] = Gravity(
-            up_cam=up, sigma_rad=sigma, num_segments=support, num_images=len(parts)
+            up_cam=up,
+            sigma_rad=sigma,
+            num_segments=support,
+            num_images=len(parts),
+            lines_px=np.c_[
+                np.asarray(camera.img_from_cam(lines.ray1)),
+                np.asarray(camera.img_from_cam(lines.ray2)),
+            ],
         )
         logger.info(
             "gravity: %s: %d vertical segments in %d image(s), +-%.2f deg",

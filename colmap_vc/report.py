@@ -416,6 +416,19 @@ def _people_section(ctx: _Context) -> str:
     return "".join(parts)
 
 
+def _gravity_section(ctx: _Context) -> str:
+    """Each measured camera with the vertical lines its up rests on."""
+    from colmap_vc import report_gravity
+
+    ids = {n: i for i, n in ctx.names.items()}
+    return report_gravity.gravity_section(
+        ctx.inputs.model_path,
+        {n: ctx.camera(i) for n, i in ids.items()},
+        lambda name: _read_image(ctx, ids[name]),
+        ctx.inputs.panel_height_px,
+    )
+
+
 def _summary_section(ctx: _Context, extra_metrics: Mapping[str, Any]) -> str:
     views, inputs = ctx.views, ctx.inputs
     vcs = list(ctx.vc_pairs.values())
@@ -608,10 +621,12 @@ def build_report(inputs: ReportInputs, out_path: Path) -> Path:
         poses,
         _pairs_section(ctx),
         _people_section(ctx),
+        _gravity_section(ctx),
     ]
     nav = "".join(
         f'<a href="#{s}">{s}</a>'
-        for s in ("summary", "poses", "errors", "pairs", "people")
+        for s in ("summary", "poses", "errors", "pairs", "people", "gravity")
+        if f'id="{s}"' in "".join(sections)
     )
     page = (
         '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'

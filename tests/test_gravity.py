@@ -15,6 +15,7 @@ from colmap_vc.gba.up import UpPriors, rotate_with_jacobian
 from colmap_vc.gravity import (
     GravityOptions,
     detect_segments,
+    endpoint_distance,
     people_up,
     vertical_direction,
 )
@@ -75,10 +76,12 @@ def test_vertical_lines_give_the_camera_its_up(rng, pitch, roll) -> None:
     hint = Rotation.from_rotvec(np.radians(12) * np.array([1.0, 0, 0])).apply(truth)
     found = vertical_direction(segments, hint, 700.0, GravityOptions())
     assert found is not None
-    up, sigma, support = found
+    up, sigma, lines = found
     error = np.degrees(np.arccos(np.clip(up @ truth, -1, 1)))
     assert error < 0.3, error
-    assert 0 < np.degrees(sigma) < 0.3 and support >= 20
+    assert 0 < np.degrees(sigma) < 0.3 and len(lines.normal) >= 20
+    # every supporting line points at the vanishing point, to its endpoints' pixel
+    assert (endpoint_distance(lines, up[None])[0] * 700.0).max() < 1.0
 
 
 def test_no_vertical_lines_no_up(rng) -> None:

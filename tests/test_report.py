@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import base64
+import json
 import os
 import re
 import shutil
@@ -453,3 +454,50 @@ def test_people_section_colours_each_identity_alike_in_every_view(
         for i in identities:  # both identity colours are drawn in each view
             near = np.abs(panel.astype(int) - PALETTE[i].astype(int)).max(-1) < 40
             assert near.sum() > 30
+
+
+def test_gravity_section_draws_the_lines_of_each_measured_camera(
+    run: Run, tmp_path: Path
+) -> None:
+    """A model with gravity.json beside it: one panel per measured camera, its
+    lines drawn in green; a model without one has no gravity section."""
+    from colmap_vc.report_gravity import LINE_BGR
+
+    model = tmp_path / "model"
+    shutil.copytree(run.model_path, model)
+    rec = pycolmap.Reconstruction(model)
+    image = next(iter(sorted(rec.images.values(), key=lambda im: im.name)))
+    up = image.cam_from_world().rotation.matrix() @ np.array([0.0, 0.0, 1.0])
+    lines = [[40.0 + 30 * k, 20.0, 40.0 + 30 * k, 300.0] for k in range(5)]
+    (model / "gravity.json").write_text(
+        json.dumps(
+            {
+                "used": True,
+                "pixel_noise_px": 10.0,
+                "cameras": {
+                    image.name: {
+                        "up_cam": up.tolist(),
+                        "sigma_deg": 0.3,
+                        "num_segments": 5,
+                        "num_images": 1,
+                        "residual_deg": 0.1,
+                        "lines_px": lines,
+                    }
+                },
+            }
+        )
+    )
+    common = {"database_path": run.database_path, "image_dir": run.scene / "images"}
+    page = build_report(
+        ReportInputs(**common, model_path=model), tmp_path / "with.html"
+    ).read_text(encoding="utf-8")
+    assert 'id="gravity"' in page and 'href="#gravity"' in page
+    panels = {k: v for k, v in _images(page).items() if k.startswith("vertical lines")}
+    assert list(panels) == [f"vertical lines of {image.name}"]
+    green = np.abs(panels[f"vertical lines of {image.name}"].astype(int) - LINE_BGR)
+    assert (green.max(-1) < 40).sum() > 50  # the five lines
+    assert "5 lines in 1 image(s), up +-0.30 deg" in page
+    without = build_report(
+        ReportInputs(**common, model_path=run.model_path), tmp_path / "without.html"
+    ).read_text(encoding="utf-8")
+    assert 'id="gravity"' not in without and 'href="#gravity"' not in without

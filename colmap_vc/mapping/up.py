@@ -34,7 +34,9 @@ from .priors import load_priors
 logger = logging.getLogger(__name__)
 
 GRAVITY_FILE = "gravity.json"
-"""Written next to the model: each camera's measured up and its residual."""
+"""Written next to the model: each camera's measured up, its standard error, the
+vertical lines it rests on (pixels; a static camera's from all its images) and how
+far the final model's up is from it."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -165,6 +167,7 @@ def write_gravity(model_dir: Path, result: GravityResult) -> Path:
                 "num_segments": g.num_segments,
                 "num_images": g.num_images,
                 "residual_deg": result.residual_deg.get(k),
+                "lines_px": np.round(g.lines_px, 1).tolist(),
             }
             for k, g in sorted(result.measured.items())
         },
