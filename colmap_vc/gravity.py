@@ -8,7 +8,8 @@ the cameras by degrees. Rooms, gyms, stages and streets hold what fixes that
 turn: vertical edges (door and window frames, pillars, shelves), whose images meet
 at the vertical vanishing point, the direction of gravity in the camera. Every
 camera that sees the same gravity must be turned so that they agree
-(:func:`colmap_vc.gba.ceres.bundle_adjust_inplace` with ``gravity``).
+(:func:`colmap_vc.gba.ceres.bundle_adjust_inplace` with ``up``, run by
+:mod:`colmap_vc.mapping.up`).
 
 Per camera (a static camera: pooled over all its images, whose background is the
 same):
@@ -29,9 +30,9 @@ same):
    background lines: scaled by the square root of their number).
 4. None when another vanishing point, farther than three standard errors (after
    its own refinement), has as many lines within counting noise (two standard
-   deviations of a count): in one
-   pose2sim image the long edge of a treadmill, window blinds and a skeleton model
-   met 5 deg from the vertical with 56 lines against the verticals' 55.
+   deviations of a count): in one pose2sim image the long edge of a treadmill,
+   window blinds and a skeleton model met 5 deg from the vertical with 56 lines
+   against the verticals' 55.
 """
 
 from __future__ import annotations
