@@ -64,7 +64,9 @@ class GravityOptions:
     """A segment supports a vanishing point when both its endpoints lie within
     this of the line from its midpoint to the point (module doc)."""
     max_hint_deg: float = 25.0
-    """Gravity lies within this of the people's up (feet to head)."""
+    """Gravity lies within this of the people's up (feet to head); a camera whose
+    up, turned into the world by the people's model, is farther than this from
+    the other cameras' is left out (colmap_vc/mapping/up.py)."""
     min_segments: int = 20
     """Fewer supporting segments: no vertical direction for that camera."""
     num_trials: int = 2000

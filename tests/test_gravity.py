@@ -13,12 +13,14 @@ from colmap_vc.evaluation import evaluate_reconstruction
 from colmap_vc.gba.ceres import bundle_adjust_inplace
 from colmap_vc.gba.up import UpPriors, rotate_with_jacobian
 from colmap_vc.gravity import (
+    Gravity,
     GravityOptions,
     detect_segments,
     endpoint_distance,
     people_up,
     vertical_direction,
 )
+from colmap_vc.mapping.up import agreeing_ups
 from colmap_vc.structs import PersonPrior
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
@@ -229,3 +231,39 @@ def test_up_priors_check_their_shapes() -> None:
             sigma_rad=np.zeros(1),
             pixel_noise_px=1.0,
         )
+
+
+def _gravity(up_cam: np.ndarray) -> Gravity:
+    return Gravity(
+        up_cam=up_cam / np.linalg.norm(up_cam),
+        sigma_rad=np.radians(0.3),
+        num_segments=30,
+        num_images=1,
+        lines_px=np.zeros((0, 4)),
+    )
+
+
+def test_an_up_that_disagrees_with_the_other_cameras_is_left_out(dome_scene) -> None:
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    registered = {im.name: i for i, im in gt.images.items()}
+    names = sorted(registered)
+    true_up = {
+        n: gt.image(registered[n]).cam_from_world().rotation.matrix() @ WORLD_UP
+        for n in names
+    }
+    measured = {n: _gravity(true_up[n]) for n in names}
+    # One camera's vanishing point is a horizontal one (60 deg off).
+    turn = Rotation.from_rotvec(np.radians(60) * np.array([1.0, 0, 0]))
+    measured[names[2]] = _gravity(turn.apply(true_up[names[2]]))
+    kept, left_out = agreeing_ups(gt, registered, measured, 25.0)
+    assert sorted(kept) == sorted(set(names) - {names[2]})
+    assert list(left_out) == [names[2]] and left_out[names[2]] > 25.0
+    # Two cameras that disagree: nothing says which is right.
+    two = {n: measured[n] for n in names[1:3]}
+    kept, left_out = agreeing_ups(gt, registered, two, 25.0)
+    assert kept == {} and sorted(left_out) == names[1:3]
+    # All agree: all kept.
+    kept, left_out = agreeing_ups(
+        gt, registered, {n: _gravity(true_up[n]) for n in names}, 25.0
+    )
+    assert sorted(kept) == names and left_out == {}

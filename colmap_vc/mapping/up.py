@@ -46,6 +46,7 @@ class GravityResult:
     pixel_noise_px: float | None  # None: no keypoint tracks to weigh against
     residual_deg: dict[str, float]  # angle between measured and model up, after
     used: bool  # False: fewer than two cameras measured, the model is unchanged
+    left_out: dict[str, float]  # image name -> its up's angle to the others' (deg)
 
 
 def keypoint_noise_px(
@@ -108,6 +109,7 @@ def refine_with_gravity_inplace(
     )
     cameras = {n: inputs.views.cameras[camera_of[n]] for n in names}
     measured = measure_gravity(image_dir, groups, cameras, persons, options)
+    measured, disagree = agreeing_ups(rec, registered, measured, options.max_hint_deg)
     noise = keypoint_noise_px(rec, inputs.database_path, min_sigma_px)
     keys = sorted(measured)
     used = len(keys) >= 2 and noise is not None
@@ -131,8 +133,50 @@ def refine_with_gravity_inplace(
         ", ".join(f"{k} {v:.2f} deg" for k, v in residual.items()),
     )
     return GravityResult(
-        measured=measured, pixel_noise_px=noise, residual_deg=residual, used=used
+        measured=measured,
+        pixel_noise_px=noise,
+        residual_deg=residual,
+        used=used,
+        left_out=disagree,
     )
+
+
+def agreeing_ups(
+    rec: pycolmap.Reconstruction,
+    registered: dict[str, int],
+    measured: dict[str, Gravity],
+    max_deg: float,
+) -> tuple[dict[str, Gravity], dict[str, float]]:
+    """The measured cameras whose up, turned into the world by the people's model,
+    lies within ``max_deg`` of the others' mean (the farthest left out first, one
+    at a time), and those left out with their angle. The people place cameras to a
+    few degrees, and a vanishing point found in the wrong lines, or near a person
+    who is not upright, is far off; two that disagree are both left out."""
+    world = {
+        k: rec.image(registered[k]).cam_from_world().rotation.matrix().T
+        @ measured[k].up_cam
+        for k in sorted(measured)
+    }
+    left_out: dict[str, float] = {}
+    while len(world) >= 2:
+        mean = np.mean(list(world.values()), axis=0)
+        mean /= np.linalg.norm(mean)
+        angle = {
+            k: float(np.degrees(np.arccos(np.clip(v @ mean, -1.0, 1.0))))
+            for k, v in world.items()
+        }
+        worst = max(angle, key=lambda k: (angle[k], k))
+        if angle[worst] <= max_deg:
+            break
+        if len(world) == 2:  # nothing says which of the two is right
+            left_out.update(angle)
+            world = {}
+            break
+        left_out[worst] = angle[worst]
+        del world[worst]
+    for k, a in left_out.items():
+        logger.info("gravity: %s left out: its up is %.1f deg from the others'", k, a)
+    return {k: measured[k] for k in world}, left_out
 
 
 def _residuals_deg(
@@ -174,6 +218,7 @@ def write_gravity(model_dir: Path, result: GravityResult) -> Path:
             }
             for k, g in sorted(result.measured.items())
         },
+        "left_out_deg": dict(sorted(result.left_out.items())),
     }
     path.write_text(json.dumps(payload, indent=2) + "\n")
     return path
