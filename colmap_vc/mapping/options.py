@@ -108,8 +108,8 @@ class MappingOptions:
     tied to one world up, weighed against the keypoints' noise: the turn of all
     cameras about the people that the keypoints barely see (docs/real-data.md,
     "Why people alone stop at 2-3 degrees"). pose2sim, AUC@15: static cameras
-    82.6 -> 92.7 (one person) and 80.3 -> 84.0 (two), one instant at a time 59.9
-    -> 77.7 and 65.0 -> 71.7. A camera without 20 agreeing vertical lines, or
+    82.6 -> 92.6 (one person) and 80.3 -> 84.0 (two), one instant at a time 59.9
+    -> 77.6 and 65.0 -> 71.7. A camera without 20 agreeing vertical lines, or
     with two vanishing points, gets no up; with fewer than two, or without
     priors (the people's up picks the vertical; their boxes are masked), the
     model is left as it is. What was measured goes to gravity.json beside the
