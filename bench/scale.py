@@ -18,7 +18,7 @@ own, so its peak memory (resident set, workers included) is its own. Stages:
 | verify | per associated pair: joint verification (RANSAC), cycle check |
 | write | VC keypoints, matches and geometries into the database |
 | map | COLMAP's mapper (and the mesh-initialised fallback) |
-| refine | keypoint BA, camera and mesh checks, metric scale, model writing |
+| refine | keypoint BA, checks, the cameras' up, metric scale, model writing |
 
 The log-log slope of each stage's time against the number of images is fitted
 between 32 and the largest size: 1 is linear, 2 quadratic.
@@ -123,6 +123,7 @@ def one_run(scene: Path, work: Path, pairs: str, static: bool) -> dict:
         "map": m.get("read", 0.0) + m.get("mapper", 0.0),  # with the mesh fallback
         "refine": m.get("refinement", 0.0)
         + m.get("checks", 0.0)
+        + m.get("gravity", 0.0)
         + m.get("scale_write", 0.0),
     }
     self_kib = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss
