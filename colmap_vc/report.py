@@ -14,10 +14,8 @@ extra) is imported lazily, only when a figure is drawn.
 
 from __future__ import annotations
 
-import html
 import logging
-import math
-from collections.abc import Mapping, Sequence
+from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +27,6 @@ import pycolmap
 from colmap_vc import database
 from colmap_vc.evaluation import (
     THRESHOLDS_DEG,
-    Metrics,
     evaluate_reconstruction,
     relative_pose,
 )
@@ -45,6 +42,15 @@ from colmap_vc.report_figures import (
     model_points,
     pose_figures,
     similarity,
+)
+from colmap_vc.report_html import (
+    CSS,
+    esc,
+    fmt,
+    metrics_rows,
+    missing,
+    table,
+    timings_html,
 )
 from colmap_vc.structs import FloatArray, HitKind, PairVcMatches, VcKeypoints
 
@@ -82,106 +88,6 @@ class ReportInputs:
 
 
 # ---------------------------------------------------------------- geometry
-
-
-CSS = """
-body{font:14px/1.45 system-ui,-apple-system,'Segoe UI',Roboto,'DejaVu Sans',sans-serif;
- margin:0;color:#1d2330;background:#f4f5f7}
-main{max-width:1360px;margin:0 auto;padding:12px 20px 40px}
-h1{font-size:22px;margin:8px 0 2px}h2{font-size:18px;margin:0 0 8px}
-h3{font-size:15px;margin:6px 0 4px}
-section{background:#fff;border:1px solid #dde1e7;border-radius:6px;padding:12px 16px;
- margin:12px 0}
-nav a{margin-right:14px;color:#2457a6}.sub{color:#5b6473;margin:0 0 6px}
-table{border-collapse:collapse;margin:4px 0 8px}
-td,th{border-bottom:1px solid #e6e8ec;padding:3px 10px;text-align:left;
- vertical-align:top}
-th{background:#f0f2f5}td.num{text-align:right;font-variant-numeric:tabular-nums}
-.missing{background:#fff6e0;border-left:4px solid #e0a200;padding:6px 10px;margin:6px 0}
-.cols{display:flex;flex-wrap:wrap;gap:16px;align-items:flex-start}
-.bar{height:12px;background:#4a7fd0;border-radius:2px;display:inline-block}
-img{max-width:100%;height:auto;display:block}
-.pairs{display:grid;grid-template-columns:repeat(auto-fill,minmax(620px,1fr));gap:14px}
-figure{margin:0}figcaption{font-size:12.5px;color:#3b4350;margin-top:3px}
-.legend{display:inline-block;width:180px;height:12px;vertical-align:middle;
- background:linear-gradient(90deg,#00ff00,#ffff00,#ff0000);border:1px solid #999}
-.swatch{display:inline-block;width:22px;height:3px;background:#008cff;vertical-align:middle}
-.views input{display:none}.views label{display:inline-block;padding:3px 10px;
- border:1px solid #aab;border-radius:4px;margin-right:6px;cursor:pointer}
-.views .view{display:none}
-#v-oblique:checked~.tabs label[for=v-oblique],#v-front:checked~.tabs label[for=v-front],
-#v-top:checked~.tabs label[for=v-top]{background:#2457a6;color:#fff}
-#v-oblique:checked~.view-oblique,#v-front:checked~.view-front,
-#v-top:checked~.view-top{display:block}
-"""
-
-
-def _esc(value: object) -> str:
-    return html.escape(str(value))
-
-
-def _table(
-    header: Sequence[str], rows: Sequence[Sequence[object]], numeric_from: int = 1
-) -> str:
-    head = "".join(f"<th>{_esc(h)}</th>" for h in header)
-    body = "".join(
-        "<tr>"
-        + "".join(
-            f"<td{' class=num' if i >= numeric_from else ''}>{_esc(v)}</td>"
-            for i, v in enumerate(row)
-        )
-        + "</tr>"
-        for row in rows
-    )
-    return f"<table><tr>{head}</tr>{body}</table>"
-
-
-def _missing(text: str) -> str:
-    return f'<p class="missing">{_esc(text)}</p>'
-
-
-def _fmt(value: Any, digits: int = 1) -> str:
-    if isinstance(value, int | np.integer):
-        return str(int(value))
-    if isinstance(value, float | np.floating):
-        return "-" if math.isnan(value) else f"{value:.{digits}f}"
-    return "-" if value is None else str(value)
-
-
-def _metrics_rows(
-    metrics: Mapping[str, Any],
-) -> tuple[list[list[str]], dict[str, FloatArray]]:
-    """Table rows and per-method pair errors (for the curve) from metrics dicts."""
-    rows, curves = [], {}
-    for name, m in metrics.items():
-        m = m.to_dict() if isinstance(m, Metrics) else dict(m)
-        auc = m.get("auc", {})
-        rows.append(
-            [
-                name,
-                f"{_fmt(m.get('num_registered'))}/{_fmt(m.get('num_images'))}",
-                *(_fmt(auc.get(f"{t:g}")) for t in THRESHOLDS_DEG),
-                _fmt(m.get("median_error_deg")),
-            ]
-        )
-        if m.get("pairs"):
-            curves[name] = np.array([p["error_deg"] for p in m["pairs"]], np.float64)
-    return rows, curves
-
-
-def _timings_html(timings: Mapping[str, float]) -> str:
-    longest = max(max(timings.values(), default=0.0), 1e-9)
-    rows = "".join(
-        f"<tr><td>{_esc(stage)}</td><td class=num>{seconds:.2f} s</td><td>"
-        f'<span class="bar" style="width:{max(1, round(300 * seconds / longest))}px">'
-        "</span></td></tr>"
-        for stage, seconds in timings.items()
-    )
-    total = sum(timings.values())
-    return (
-        f"<table><tr><th>stage</th><th>time</th><th></th></tr>{rows}"
-        f"<tr><th>total</th><th class=num>{total:.2f} s</th><th></th></tr></table>"
-    )
 
 
 # ---------------------------------------------------------------- the report
@@ -309,14 +215,14 @@ def _pairs_section(ctx: _Context) -> str:
     ]
     if not ctx.vc_pairs:
         parts.append(
-            _missing(
+            missing(
                 "This database has no virtual correspondences "
                 "(colmap-vc augment was not run on it): the pairs show "
                 "classic inlier matches only."
             )
         )
     if not ranked:
-        parts.append(_missing("No image pair has matches: nothing to draw."))
+        parts.append(missing("No image pair has matches: nothing to draw."))
     parts.append('<div class="pairs">')
     for pair in ranked:
         vc = ctx.vc_pairs.get(pair)
@@ -348,7 +254,7 @@ def _pairs_section(ctx: _Context) -> str:
             max_vc_dots=inputs.max_vc_dots,
         )
         caption = (
-            f"<b>{_esc(ctx.names[pair[0]])} ↔ {_esc(ctx.names[pair[1]])}</b>: "
+            f"<b>{esc(ctx.names[pair[0]])} ↔ {esc(ctx.names[pair[1]])}</b>: "
             + (f"{len(v1)} VCs ({int(inlier.sum())} inliers), " if vc else "")
             + f"{len(classic)} classic inliers"
         )
@@ -385,7 +291,7 @@ def _people_section(ctx: _Context) -> str:
         "marks a person left out (no confident partner in any other view).</p>",
     ]
     if not ctx.vc_keypoints:
-        parts.append(_missing("No virtual correspondences: no people to show."))
+        parts.append(missing("No virtual correspondences: no people to show."))
         parts.append("</section>")
         return "".join(parts)
     parts.append('<div class="pairs">')
@@ -408,9 +314,9 @@ def _people_section(ctx: _Context) -> str:
         )
         parts.append(
             f'<figure class="person" data-image="{image_id}">'
-            f'<img alt="people in {_esc(ctx.names[image_id])}" '
-            f'src="{jpeg_uri(panel)}"><figcaption><b>{_esc(ctx.names[image_id])}'
-            f"</b>: {_esc(who)}</figcaption></figure>"
+            f'<img alt="people in {esc(ctx.names[image_id])}" '
+            f'src="{jpeg_uri(panel)}"><figcaption><b>{esc(ctx.names[image_id])}'
+            f"</b>: {esc(who)}</figcaption></figure>"
         )
     parts.append("</div></section>")
     return "".join(parts)
@@ -469,15 +375,15 @@ def _summary_section(ctx: _Context, extra_metrics: Mapping[str, Any]) -> str:
         ]
     parts = [
         '<section id="summary"><h2>Summary</h2><div class="cols"><div>',
-        _table(["", "value"], [[k, _fmt(v)] for k, v in rows]),
+        table(["", "value"], [[k, fmt(v)] for k, v in rows]),
         "</div><div>",
     ]
     metrics = {**(inputs.metrics or {}), **extra_metrics}
     if metrics:
-        metric_rows, _ = _metrics_rows(metrics)
+        metric_rows, _ = metrics_rows(metrics)
         parts += [
             "<h3>Pose accuracy</h3>",
-            _table(
+            table(
                 [
                     "method",
                     "registered",
@@ -489,19 +395,19 @@ def _summary_section(ctx: _Context, extra_metrics: Mapping[str, Any]) -> str:
         ]
     else:
         parts.append(
-            _missing(
+            missing(
                 "No metrics given and no GT + model to compute them: "
                 "no pose-accuracy table."
             )
         )
     if inputs.timings_s:
-        parts += ["<h3>Per-stage timings</h3>", _timings_html(inputs.timings_s)]
+        parts += ["<h3>Per-stage timings</h3>", timings_html(inputs.timings_s)]
     else:
-        parts.append(_missing("No per-stage timings given (timings_s)."))
+        parts.append(missing("No per-stage timings given (timings_s)."))
     parts.append("</div></div>")
     if ctx.model is None:
         parts.append(
-            _missing(
+            missing(
                 "No reconstructed model given (model_path): registration,"
                 " camera poses and pose errors are not shown."
             )
@@ -518,14 +424,14 @@ def _poses_section(ctx: _Context) -> tuple[str, dict[str, Any]]:
     gt = PlotCameras.of(ctx.gt) if ctx.gt is not None else None
     if pred is None:
         parts.append(
-            _missing(
+            missing(
                 "No reconstructed model given: "
                 + ("showing the GT cameras only." if gt else "no camera poses to show.")
             )
         )
     elif gt is None:
         parts.append(
-            _missing(
+            missing(
                 "No ground-truth model given (gt_model_path): GT cameras "
                 "and the pose-error curve are not shown."
             )
@@ -538,7 +444,7 @@ def _poses_section(ctx: _Context) -> tuple[str, dict[str, Any]]:
             gt = gt.transformed(*similarity(src, dst))
         else:
             parts.append(
-                _missing(
+                missing(
                     f"Only {len(common)} registered images are in the GT: "
                     "too few to align GT (needs 3), GT cameras not drawn."
                 )
@@ -574,7 +480,7 @@ def _poses_section(ctx: _Context) -> tuple[str, dict[str, Any]]:
         )
     else:
         if main is not None:
-            parts.append(_missing("The model has no registered image."))
+            parts.append(missing("The model has no registered image."))
         parts.append('<div class="cols">')
 
     parts.append('<div id="errors"><h3>Cumulative pose error</h3>')
@@ -584,7 +490,7 @@ def _poses_section(ctx: _Context) -> tuple[str, dict[str, Any]]:
         metrics = evaluate_reconstruction(ctx.model, ctx.gt)
         extra["this model (vs GT)"] = metrics
         curves["this model"] = np.array([p.error_deg for p in metrics.pairs])
-    curves.update(_metrics_rows(ctx.inputs.metrics or {})[1])
+    curves.update(metrics_rows(ctx.inputs.metrics or {})[1])
     if curves:
         parts.append(
             f'<img alt="pose error curve" src="{error_curve_uri(curves)}">'
@@ -594,7 +500,7 @@ def _poses_section(ctx: _Context) -> tuple[str, dict[str, Any]]:
         )
     else:
         parts.append(
-            _missing(
+            missing(
                 "No ground-truth model (or no reconstructed model) and no "
                 "per-pair metrics given: no pose-error curve."
             )
@@ -630,8 +536,8 @@ def build_report(inputs: ReportInputs, out_path: Path) -> Path:
     )
     page = (
         '<!DOCTYPE html><html lang="en"><head><meta charset="utf-8">'
-        f"<title>{_esc(inputs.title)}</title><style>{CSS}</style></head><body><main>"
-        f"<h1>{_esc(inputs.title)}</h1><p class=sub>{_esc(Path(inputs.database_path))}"
+        f"<title>{esc(inputs.title)}</title><style>{CSS}</style></head><body><main>"
+        f"<h1>{esc(inputs.title)}</h1><p class=sub>{esc(Path(inputs.database_path))}"
         f"</p><nav>{nav}</nav>{''.join(sections)}</main></body></html>"
     )
     out_path = Path(out_path)

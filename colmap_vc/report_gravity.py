@@ -7,7 +7,6 @@ the lines are the room's verticals (door frames, pillars) or something else.
 
 from __future__ import annotations
 
-import html
 import json
 from collections.abc import Callable, Mapping
 from pathlib import Path
@@ -16,6 +15,7 @@ import numpy as np
 import pycolmap
 
 from colmap_vc.report_figures import jpeg_uri
+from colmap_vc.report_html import esc
 from colmap_vc.structs import FloatArray
 
 LINE_BGR = (60, 200, 60)
@@ -102,8 +102,8 @@ def gravity_section(
         )
         after = g.get("residual_deg")
         parts.append(
-            f'<figure class="gravity"><img alt="vertical lines of {html.escape(name)}" '
-            f'src="{jpeg_uri(panel)}"><figcaption><b>{html.escape(name)}</b>: '
+            f'<figure class="gravity"><img alt="vertical lines of {esc(name)}" '
+            f'src="{jpeg_uri(panel)}"><figcaption><b>{esc(name)}</b>: '
             f"{g['num_segments']} lines in {g['num_images']} image(s), up +-"
             f"{g['sigma_deg']:.2f} deg"
             + ("" if after is None else f"; the model's up {after:.2f} deg from it")
