@@ -9,7 +9,6 @@ Exit codes (README.md): 0 success, 1 the input or a file did not allow the run,
 from __future__ import annotations
 
 import dataclasses
-import errno
 import json
 import logging
 import signal
@@ -21,9 +20,13 @@ from pathlib import Path
 
 import tyro
 
-from . import database
 from .augment import AugmentOptions
 from .mapping import MappingOptions
+from .messages import (
+    interrupted_message,
+    os_message,
+    sqlite_message,
+)
 
 logger = logging.getLogger("colmap_vc")
 
@@ -503,58 +506,6 @@ def _raise_terminated(signum: int, frame: object) -> None:
     raise Terminated
 
 
-def _database_of(cmd: object) -> Path | None:
-    path = getattr(cmd, "database", None)
-    return path if isinstance(path, Path) else None
-
-
-def _sqlite_message(exc: sqlite3.Error, cmd: object) -> str:
-    db = _database_of(cmd)
-    where = f"{db}: " if db else ""
-    text = str(exc)
-    if "readonly" in text or "read-only" in text:
-        hint = "make the database and its folder writable, or work on a copy"
-    elif "malformed" in text or "not a database" in text or "corrupt" in text:
-        hint = "the file is damaged: restore it from a backup or rebuild it with COLMAP"
-    elif "locked" in text or "busy" in text:
-        hint = "another process is writing it: close it and retry"
-    elif "no such table" in text or "no such column" in text:
-        hint = "a table is missing: was the database edited by hand? `colmap-vc strip`"
-        hint += " or a fresh COLMAP database"
-    elif "disk" in text or "full" in text:
-        hint = "free disk space and retry"
-    else:
-        hint = "see --verbose"
-    return f"{where}SQLite error: {text} ({hint})"
-
-
-def _os_message(exc: OSError) -> str:
-    if exc.filename is None or str(exc.filename) in str(exc.strerror or ""):
-        return str(exc)  # colmap-vc's own message, naming the file already
-    name = exc.filename
-    if exc.errno == errno.ENOSPC:
-        return f"no space left on the device of {name}: free space and retry"
-    if exc.errno in (errno.EACCES, errno.EPERM, errno.EROFS):
-        return f"permission denied: {name} ({exc.strerror}): check its permissions"
-    if exc.errno == errno.EISDIR:
-        return f"{name} is a folder, a file was expected"
-    if exc.errno == errno.ENOTDIR:
-        return f"{name}: a part of this path is a file, a folder was expected"
-    return f"{name}: {exc.strerror or exc}"
-
-
-def _interrupted(cmd: object, signal_name: str) -> str:
-    db = _database_of(cmd)
-    if db is None:
-        return f"interrupted by {signal_name}"
-    changed = any(p.resolve() == db.resolve() for p in database.COMMITTED)
-    return f"interrupted by {signal_name}: {db} " + (
-        "was fully written before the interrupt"
-        if changed
-        else "is unchanged (colmap-vc writes it in one transaction, rolled back)"
-    )
-
-
 def run_command(cmd: object) -> int:
     """Run a parsed command: every expected failure is one line and an exit code.
 
@@ -567,16 +518,16 @@ def run_command(cmd: object) -> int:
     try:
         return RUNNERS[type(cmd)](cmd)  # type: ignore[index]
     except KeyboardInterrupt:
-        logger.error("%s", _interrupted(cmd, "Ctrl-C"), exc_info=verbose)
+        logger.error("%s", interrupted_message(cmd, "Ctrl-C"), exc_info=verbose)
         return EXIT_INTERRUPTED
     except Terminated:
-        logger.error("%s", _interrupted(cmd, "SIGTERM"), exc_info=verbose)
+        logger.error("%s", interrupted_message(cmd, "SIGTERM"), exc_info=verbose)
         return EXIT_TERMINATED
     except sqlite3.Error as exc:
-        logger.error("%s", _sqlite_message(exc, cmd), exc_info=verbose)
+        logger.error("%s", sqlite_message(exc, cmd), exc_info=verbose)
         return EXIT_FAILURE
     except OSError as exc:
-        logger.error("%s", _os_message(exc), exc_info=verbose)
+        logger.error("%s", os_message(exc), exc_info=verbose)
         return EXIT_FAILURE
     except (ValueError, RuntimeError) as exc:
         logger.error("%s", exc, exc_info=verbose)
