@@ -325,8 +325,11 @@ def measure_gravity(
         for name in sorted(groups[key]):  # loop over the camera's images
             people = persons.get(name, ())
             hint = people_up(people)
+            if hint is None:
+                continue
             image = cv2.imread(str(Path(image_dir) / name), cv2.IMREAD_GRAYSCALE)
-            if hint is None or image is None:
+            if image is None:
+                logger.warning("gravity: cannot read %s: no up from it", name)
                 continue
             hints.append(hint)
             mask = people_mask(people, camera, options.min_segment_px)
