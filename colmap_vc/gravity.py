@@ -154,8 +154,7 @@ def _joined(ray1: FloatArray, ray2: FloatArray, tol: float) -> Segments:
     """Segments on one image line (pieces of one edge LSD broke up) joined into
     one, from the farthest two of their endpoints: a long edge in ten pieces is
     one line, not ten votes for every vanishing point it passes."""
-    normal = np.cross(ray1, ray2)
-    normal /= np.linalg.norm(normal, axis=1, keepdims=True)
+    normal = _unit_normals(ray1, ray2)
     if len(normal) < 2:
         return Segments(ray1=ray1, ray2=ray2, normal=normal)
     scale = np.linalg.norm(normal[:, :2], axis=1)  # line i: normal_i . (x, y, 1) = 0
@@ -170,25 +169,29 @@ def _joined(ray1: FloatArray, ray2: FloatArray, tol: float) -> Segments:
     graph = csr_matrix((np.ones(len(i), bool), (i, j)), shape=(len(normal),) * 2)
     graph = graph.multiply(graph.T)  # both ways: each on the other's line
     _, group = connected_components(graph, directed=False)
-    order = np.argsort(group, kind="stable")
-    starts = np.flatnonzero(np.r_[True, np.diff(group[order]) != 0])
-    ends = np.r_[starts[1:], len(order)]
-    out1, out2 = [], []
-    for a, b in zip(starts.tolist(), ends.tolist(), strict=True):  # loop over lines
-        members = order[a:b]
-        if len(members) == 1:
-            out1.append(ray1[members[0]])
-            out2.append(ray2[members[0]])
-            continue
-        points = np.concatenate([ray1[members], ray2[members]])
-        direction = points[-1, :2] - points[0, :2]
-        along = points[:, :2] @ (direction / np.linalg.norm(direction))
-        out1.append(points[int(np.argmin(along))])
-        out2.append(points[int(np.argmax(along))])
-    r1, r2 = np.array(out1), np.array(out2)
-    n = np.cross(r1, r2)
-    n /= np.linalg.norm(n, axis=1, keepdims=True)
+    num = int(group.max()) + 1
+    index = np.arange(len(group))
+    first = np.full(num, len(group))
+    np.minimum.at(first, group, index)
+    last = np.zeros(num, dtype=np.int64)
+    np.maximum.at(last, group, index)
+    direction = ray2[last, :2] - ray1[first, :2]  # a line's span: first to last piece
+    direction /= np.linalg.norm(direction, axis=1, keepdims=True)
+    points = np.concatenate([ray1, ray2])
+    owner = np.r_[group, group]
+    along = np.einsum("ij,ij->i", points[:, :2], direction[owner])
+    ranked = np.lexsort((along, owner))  # by line, then along it
+    bounds = np.searchsorted(owner[ranked], np.arange(num + 1))
+    r1 = points[ranked[bounds[:-1]]]  # each line's extreme endpoints
+    r2 = points[ranked[bounds[1:] - 1]]
+    n = _unit_normals(r1, r2)
     return Segments(ray1=r1, ray2=r2, normal=n)
+
+
+def _unit_normals(ray1: FloatArray, ray2: FloatArray) -> FloatArray:
+    """(S, 3) unit normal of the plane through the camera centre and each segment."""
+    normal = np.cross(ray1, ray2)
+    return normal / np.linalg.norm(normal, axis=1, keepdims=True)
 
 
 def endpoint_distance(segments: Segments, points: FloatArray) -> FloatArray:
