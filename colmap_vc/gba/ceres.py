@@ -81,8 +81,6 @@ def bundle_adjust_inplace(
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     weighted = [] if people is None else _weighted_points(rec, people)
-    if up is not None and len(set(up.image_id.tolist()) & set(rec.reg_image_ids())) < 2:
-        up = None  # one camera's up says nothing about the others
     if not weighted:
         adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
         alive = _add_up(adjuster.problem, rec, up)

@@ -57,6 +57,11 @@ def rotate_with_jacobian(q: FloatArray, u: FloatArray) -> tuple[FloatArray, Floa
     return Ru, J
 
 
+def rotation_matrix(q: FloatArray) -> FloatArray:
+    """(3, 3) R(q) of a unit quaternion q = (x, y, z, w): its image of each axis."""
+    return np.column_stack([rotate_with_jacobian(q, e)[0] for e in np.eye(3)])
+
+
 class UpCost(pyceres.CostFunction):
     """(R(q) u - g) * scale on a COLMAP pose block [qx qy qz qw tx ty tz] and u."""
 
@@ -82,10 +87,7 @@ class UpCost(pyceres.CostFunction):
                 J[:, :4] = dq * self.scale
                 jacobians[0][:] = J.ravel()
             if jacobians[1] is not None:
-                R = np.column_stack(
-                    [rotate_with_jacobian(pose[:4], e)[0] for e in np.eye(3)]
-                )
-                jacobians[1][:] = (R * self.scale).ravel()
+                jacobians[1][:] = (rotation_matrix(pose[:4]) * self.scale).ravel()
         return True
 
 
@@ -101,8 +103,7 @@ def add_up_priors(
     rows = [k for k, i in enumerate(priors.image_id.tolist()) if i in pose_blocks]
     world = []
     for k in rows:  # loop over the measured cameras
-        q = pose_blocks[int(priors.image_id[k])][:4]
-        R = np.column_stack([rotate_with_jacobian(q, e)[0] for e in np.eye(3)])
+        R = rotation_matrix(pose_blocks[int(priors.image_id[k])][:4])
         world.append(R.T @ priors.up_cam[k])
     up = np.mean(world, axis=0) if world else np.array([0.0, 0.0, 1.0])
     up /= np.linalg.norm(up)
