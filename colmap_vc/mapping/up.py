@@ -152,31 +152,22 @@ def agreeing_ups(
     at a time), and those left out with their angle. The people place cameras to a
     few degrees, and a vanishing point found in the wrong lines, or near a person
     who is not upright, is far off; two that disagree are both left out."""
-    world = {
-        k: rec.image(registered[k]).cam_from_world().rotation.matrix().T
-        @ measured[k].up_cam
-        for k in sorted(measured)
-    }
+    kept = dict(measured)
     left_out: dict[str, float] = {}
-    while len(world) >= 2:
-        mean = np.mean(list(world.values()), axis=0)
-        mean /= np.linalg.norm(mean)
-        angle = {
-            k: float(np.degrees(np.arccos(np.clip(v @ mean, -1.0, 1.0))))
-            for k, v in world.items()
-        }
+    while len(kept) >= 2:
+        angle = _residuals_deg(rec, registered, kept)
         worst = max(angle, key=lambda k: (angle[k], k))
         if angle[worst] <= max_deg:
             break
-        if len(world) == 2:  # nothing says which of the two is right
+        if len(kept) == 2:  # nothing says which of the two is right
             left_out.update(angle)
-            world = {}
+            kept = {}
             break
         left_out[worst] = angle[worst]
-        del world[worst]
+        del kept[worst]
     for k, a in left_out.items():
         logger.info("gravity: %s left out: its up is %.1f deg from the others'", k, a)
-    return {k: measured[k] for k in world}, left_out
+    return {k: measured[k] for k in sorted(kept)}, left_out
 
 
 def _residuals_deg(
