@@ -77,7 +77,7 @@ def error_colors_bgr(errors_px: FloatArray, max_error_px: float) -> np.ndarray:
 # ---------------------------------------------------------------- drawing
 
 
-def _polylines(
+def polylines(
     image: np.ndarray, segments: np.ndarray, colors: np.ndarray, thickness: int
 ) -> None:
     """Draw (N, 2, 2) pixel segments (OpenCV convention) in place, one call per colour.
@@ -103,7 +103,7 @@ def _polylines(
         )
 
 
-def _fit_height(image: np.ndarray, height: int) -> tuple[np.ndarray, float]:
+def fit_height(image: np.ndarray, height: int) -> tuple[np.ndarray, float]:
     scale = height / image.shape[0]
     width = max(1, round(image.shape[1] * scale))
     return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA), scale
@@ -137,8 +137,8 @@ def draw_pair(
     Returns:
         (height, W, 3) uint8 BGR panel.
     """
-    im1, s1 = _fit_height(image1, height)
-    im2, s2 = _fit_height(image2, height)
+    im1, s1 = fit_height(image1, height)
+    im2, s2 = fit_height(image2, height)
     offset = im1.shape[1] + PANEL_GAP_PX
     panel = np.full((height, offset + im2.shape[1], 3), 255, np.uint8)
     panel[:, : im1.shape[1]] = im1
@@ -151,8 +151,8 @@ def draw_pair(
     if classic_xy1 is not None and classic_xy2 is not None and len(classic_xy1):
         c1, c2 = to_panel(classic_xy1, classic_xy2)
         color = np.tile(CLASSIC_BGR, (len(c1), 1))
-        _polylines(panel, np.stack([c1, c2], 1), color, 1)
-        _polylines(panel, np.stack([np.r_[c1, c2]] * 2, 1), np.r_[color, color], 4)
+        polylines(panel, np.stack([c1, c2], 1), color, 1)
+        polylines(panel, np.stack([np.r_[c1, c2]] * 2, 1), np.r_[color, color], 4)
 
     if len(vc_xy1):
         inlier = (
@@ -180,14 +180,14 @@ def draw_pair(
             lines = keep[
                 np.argsort(np.nan_to_num(level[keep], nan=-1.0), kind="stable")
             ]
-            _polylines(panel, np.stack([v1[lines], v2[lines]], 1), colors[lines], 1)
+            polylines(panel, np.stack([v1[lines], v2[lines]], 1), colors[lines], 1)
         for is_in, size in ((False, 3), (True, 4)):
             idx = order[inlier[order] == is_in]
             dots = np.r_[v1[idx], v2[idx]]
             dot_colors = np.r_[colors[idx], colors[idx]]
             if is_in:  # dark outline first, so light colours stand out on skin
-                _polylines(
+                polylines(
                     panel, np.stack([dots] * 2, 1), np.zeros_like(dot_colors), size + 2
                 )
-            _polylines(panel, np.stack([dots] * 2, 1), dot_colors, size)
+            polylines(panel, np.stack([dots] * 2, 1), dot_colors, size)
     return panel

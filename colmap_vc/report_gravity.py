@@ -14,6 +14,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from colmap_vc.report_draw import fit_height, polylines
 from colmap_vc.report_figures import jpeg_uri
 from colmap_vc.report_html import esc
 from colmap_vc.structs import FloatArray
@@ -44,13 +45,10 @@ def draw_gravity(
     """The image scaled to ``height`` with the supporting lines and the up arrow."""
     import cv2
 
-    scale = height / image_bgr.shape[0]
-    width = max(1, round(image_bgr.shape[1] * scale))
-    canvas = cv2.resize(image_bgr, (width, height), interpolation=cv2.INTER_AREA)
+    canvas, scale = fit_height(image_bgr, height)
     thickness = max(1, height // 240)
-    ends = np.round((np.asarray(lines_px).reshape(-1, 4) - 0.5) * scale).astype(int)
-    for x1, y1, x2, y2 in ends.tolist():  # drawing: one call per line
-        cv2.line(canvas, (x1, y1), (x2, y2), LINE_BGR, thickness, cv2.LINE_AA)
+    ends = (np.asarray(lines_px, dtype=np.float64).reshape(-1, 2, 2) - 0.5) * scale
+    polylines(canvas, ends, np.tile(LINE_BGR, (len(ends), 1)), thickness)
     start, end = (np.round((p - 0.5) * scale).astype(int) for p in arrow_px)
     cv2.arrowedLine(
         canvas,
