@@ -73,3 +73,9 @@ def speed_scene() -> Path:
             SynthOptions(seed=100, num_cameras=16, num_people=3, overwrite=True),
         )
     return scene
+
+
+def variant_dir(parent: Path, name: str, extra_args: list[str]) -> Path:
+    """The output folder of one variant of a run: ``name`` with the extra CLI
+    arguments appended (``sparse``, ``sparse_no-gravity``)."""
+    return parent / "_".join([name, *(a.strip("-") for a in extra_args)])

@@ -20,7 +20,15 @@ import logging
 import shutil
 import time
 
-from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
+from common import (
+    DOCS,
+    OUT,
+    machine,
+    replace_section,
+    setup_logging,
+    variant_dir,
+    write_json,
+)
 from realdata import INSTANTS, SHARED, _largest_model, load_calibration, make_database
 from realdata import pooled as pool
 
@@ -71,7 +79,7 @@ def run(ds: str, out_dir: str) -> dict:
 
 
 def _map(ds: str, data, work, db, gt: dict, extra: list[str]) -> dict:
-    sparse = work / ("sparse" + "_".join(["", *(a.strip("-") for a in extra)]))
+    sparse = variant_dir(work, "sparse", extra)
     shutil.rmtree(sparse, ignore_errors=True)  # the bench's own output
     t0 = time.perf_counter()
     code = cli.main(

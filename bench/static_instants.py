@@ -31,7 +31,15 @@ import zipfile
 from pathlib import Path
 
 import numpy as np
-from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
+from common import (
+    DOCS,
+    OUT,
+    machine,
+    replace_section,
+    setup_logging,
+    variant_dir,
+    write_json,
+)
 from realdata import SHARED, _largest_model, load_calibration, make_database
 
 from colmap_vc import cli
@@ -115,7 +123,7 @@ def run(num: int, instants: list[int], work: Path, frames: Path, priors: Path) -
     seconds = time.perf_counter() - t0
     out = {}
     for variant, extra in VARIANTS.items():  # the same augmented database
-        sparse = row / ("sparse" + "_".join(["", *(a.strip("-") for a in extra)]))
+        sparse = variant_dir(row, "sparse", extra)
         t0 = time.perf_counter()
         code = cli.main(
             [
