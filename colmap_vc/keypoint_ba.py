@@ -33,7 +33,11 @@ import numpy as np
 import pycolmap
 
 from . import database
-from .camera_check import check_cameras_inplace
+from .camera_check import (
+    check_cameras_inplace,
+    check_few_view_people,
+    unchecked_people,
+)
 from .gba.ceres import PeopleNoise, bundle_adjust_inplace
 from .gba.noise import cluster_noise
 from .keypoint_tracks import (
@@ -105,6 +109,16 @@ class KeypointBaOptions:
     within 2x the median camera on pose2sim (10-28 px at 1920 px, MediaPipe's
     landmark noise is 10-15 px); a camera on the mirror side of a person whose prior
     is turned front to back misses by about 3x (37-52 px)."""
+    label_test_z: float = 2.0
+    """A camera within that ratio, one of whose people fits the other cameras'
+    points better with left and right exchanged, is re-posed so when the gain is
+    this many standard errors of the log-ratio of the two median errors (1.02 /
+    sqrt(n) for the person's n keypoints: the sampling error of a median of
+    Rayleigh residuals; z = 2 is one-sided 2.3%). A prior turned front to back
+    can sit within 2x of the median camera when the person's pose is nearly
+    symmetric (1-person synthetic dome s0: 2.1x); its exchanged labels then fit
+    at 0.4-0.6 of the labelled error, correct cameras' at 1.2-10x
+    (docs/real-data.md, "People seen from the back")."""
     min_check_points: int = 10
     """Keypoint points a check needs (about half a person)."""
     min_classic_support: int = 30
@@ -156,6 +170,8 @@ def keypoint_bundle_adjustment(
     check try an image's people with left and right exchanged.
     """
     options = with_loss_scale(options or KeypointBaOptions(), rec)
+    loss = options.loss_scale_px
+    assert loss is not None
     t0 = time.perf_counter()
     out = pycolmap.Reconstruction(rec)
     registered = np.array(
@@ -203,15 +219,31 @@ def keypoint_bundle_adjustment(
             dropped += vc_obs[k]
             out.delete_point3D(vc_only[k])
     good, counts = add_keypoint_points(out, tracks, options.min_track_length)
+    bundle_adjust_inplace(out, loss)
+    few = unchecked_people(tracks) if len(registered) >= 3 else []
+    if few and options.check_cameras:
+        tracks, missed = check_few_view_people(
+            out, tracks, few, options.max_check_ratio, loss
+        )
+        if missed:
+            logger.warning(
+                "person check: %d person(s) seen by two images left out of the "
+                "keypoint tracks: their keypoints miss the model the others hold "
+                "(median %s px)",
+                len(missed),
+                ", ".join(f"{e:.0f}" for e in missed.values()),
+            )
+            delete_points_observing(out, keypoint_obs)
+            good, counts = add_keypoint_points(out, tracks, options.min_track_length)
+            bundle_adjust_inplace(out, loss)
     num_kp_obs = int(counts[good].sum())
-    bundle_adjust_inplace(out, options.loss_scale_px)
     people: PeopleNoise | None = None
     num_surface = int(sum(vc_obs)) - dropped
     if options.surface_tracks:
         people, num_surface = add_weighted_surface(
             database_path, out, tracks, registered, options
         )
-        bundle_adjust_inplace(out, options.loss_scale_px, people)
+        bundle_adjust_inplace(out, loss, people)
     relocalised: list[str] = []
     left_out: dict[str, str] = {}
     mirrored: list[str] = []
@@ -220,7 +252,7 @@ def keypoint_bundle_adjustment(
             out,
             tracks,
             options,
-            lambda rec: bundle_adjust_inplace(rec, options.loss_scale_px, people),
+            lambda rec: bundle_adjust_inplace(rec, loss, people),
             mirror=mirror,
             num_classic=num_classic,
         )

@@ -258,12 +258,19 @@ def subset(tracks: KeypointTracks, keep: np.ndarray) -> KeypointTracks:
 
 
 def relabelled(
-    tracks: KeypointTracks, image_id: int, partner: IndexArray
+    tracks: KeypointTracks,
+    image_id: int,
+    partner: IndexArray,
+    identity: int | None = None,
 ) -> KeypointTracks:
-    """``tracks`` with image ``image_id``'s keypoints moved to their left/right
-    counterparts' tracks (those without one are dropped)."""
+    """``tracks`` with image ``image_id``'s keypoints (of person ``identity`` only,
+    when given) moved to their left/right counterparts' tracks (those without one
+    are dropped)."""
     track = tracks.track.copy()
     mine = tracks.image_id == image_id
+    if identity is not None:
+        assert tracks.keys is not None
+        mine &= tracks.keys[tracks.track, 0] == identity
     track[mine] = partner[track[mine]]
     keep = track >= 0
     order = np.argsort(track[keep], kind="stable")

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 import shutil
 
 import numpy as np
@@ -19,6 +20,7 @@ from colmap_vc.keypoint_tracks import (
     keypoint_tracks,
     mirrored_tracks,
     person_identities,
+    subset,
     triangulate_tracks,
 )
 
@@ -285,6 +287,143 @@ def test_camera_check_exchanges_left_and_right(dome_scene, rng):
         got = rec.find_image_with_name(other).cam_from_world().matrix()
         assert np.abs(got[:, :3] @ T[:, :3].T - np.eye(3)).max() < 0.02, other
     assert len(rec.points3D) == len(points)  # rebuilt, one per keypoint
+
+
+def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = (np.trace(a[:, :3] @ b[:, :3].T) - 1) / 2
+    return float(np.rad2deg(np.arccos(np.clip(cos, -1, 1))))
+
+
+@pytest.mark.parametrize("exchanged", [True, False])
+def test_camera_check_tests_left_and_right_where_no_camera_misses_by_far(
+    dome_scene, rng, exchanged
+):
+    """A camera on the mirror side whose error stays within the check's ratio (a
+    nearly symmetric pose): its labels exchanged fit the others' points
+    significantly better, so it is re-posed with them and the model comes to the
+    optimum the same adjustment reaches from the truth. Where every label is
+    right, nobody is exchanged and no camera moves."""
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    left = rng.normal(0, 0.3, (12, 3)) * [1, 2, 1] + [-0.25, -0.9, 0]
+    points = np.repeat(left, 2, axis=0)
+    points[1::2, 0] = -points[1::2, 0] + 0.05 * rng.normal(size=12)
+    tracks = _tracks_from_points(rec, points, rng, noise_px=1.0)
+    keys = np.stack([np.zeros(len(points), np.int64), 2000 + np.arange(len(points))], 1)
+    tracks = KeypointTracks(
+        track=tracks.track,
+        image_id=tracks.image_id,
+        point2D_idx=tracks.track.copy(),  # keypoint k is point2D k of every image
+        xy_img=tracks.xy_img,
+        keys=keys,
+    )
+
+    def with_keypoints(xy: np.ndarray) -> pycolmap.Reconstruction:
+        out = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+        for i in np.unique(tracks.image_id):
+            mine = np.flatnonzero(tracks.image_id == i)
+            mine = mine[np.argsort(tracks.track[mine])]
+            out.image(int(i)).points2D = pycolmap.Point2DList(
+                [pycolmap.Point2D(p) for p in xy[mine]]
+            )
+        return out
+
+    optimum = with_keypoints(tracks.xy_img)  # the right labels, adjusted
+    add_keypoint_points(optimum, tracks, 2)
+    _adjust(optimum)
+    rec = with_keypoints(tracks.xy_img)
+    truth = {im.name: im.cam_from_world().matrix() for im in rec.images.values()}
+    # Not one of the two cameras that fix the gauge (the first two by id).
+    name = sorted(truth)[3]
+    image = rec.find_image_with_name(name)
+    if exchanged:
+        swap = np.arange(len(points)) ^ 1
+        sel = np.flatnonzero(tracks.image_id == image.image_id)
+        sel = sel[np.argsort(tracks.track[sel])]
+        xy = tracks.xy_img.copy()
+        xy[sel] = tracks.xy_img[sel][swap]  # its detection k is where k ^ 1 is
+        tracks = dataclasses.replace(tracks, xy_img=xy)
+        rec = with_keypoints(xy)
+        image = rec.find_image_with_name(name)
+        # The mapper put it where those labels fit: PnP on the true points.
+        est = pycolmap.AbsolutePoseEstimationOptions()
+        est.ransac.max_error = 1e3
+        found = pycolmap.estimate_and_refine_absolute_pose(
+            xy[sel], points, rec.camera(image.camera_id), est
+        )
+        assert found is not None
+        rec.frame(image.frame_id).rig_from_world = found["cam_from_world"]
+        assert _rotation_deg(image.cam_from_world().matrix(), truth[name]) > 10
+    add_keypoint_points(rec, tracks, 2)
+    # The ratio test alone would never fire: only the label test can.
+    options = KeypointBaOptions(
+        loss_scale_px=4.0, min_check_points=8, max_check_ratio=1e3
+    )
+    mirror = {2000 + k: 2000 + (k ^ 1) for k in range(len(points))}
+    relocalised, left_out, mirrored = check_cameras_inplace(
+        rec,
+        tracks,
+        options,
+        _adjust,
+        mirror=mirror,
+        num_classic=dict.fromkeys(rec.images, 0),
+    )
+    assert not left_out
+    assert mirrored == relocalised == ([name] if exchanged else [])
+    for im in rec.images.values():
+        got = im.cam_from_world().matrix()
+        if exchanged:
+            want = optimum.find_image_with_name(im.name).cam_from_world().matrix()
+            assert _rotation_deg(got, want) < 0.1, im.name
+        else:
+            assert np.array_equal(got, truth[im.name]), im.name
+
+
+def test_labels_exchanged_needs_a_gain_beyond_the_medians_sampling_error():
+    from colmap_vc.camera_check import labels_exchanged
+
+    assert labels_exchanged(9.0, 4.5, 17, 2.0)  # half: 2.8 standard errors
+    assert not labels_exchanged(9.0, 6.0, 17, 2.0)  # 2/3: 1.6
+    assert labels_exchanged(9.0, 7.2, 200, 2.0)  # 0.8 on 200 keypoints: 3.2
+    assert not labels_exchanged(4.0, 9.0, 17, 2.0)  # worse
+    assert not labels_exchanged(np.inf, 4.0, 17, 2.0)
+    assert not labels_exchanged(9.0, 4.5, 0, 2.0)
+
+
+@pytest.mark.parametrize("second", ["object", "phantom"])
+def test_a_person_two_images_see_is_checked_against_the_others(dome_scene, rng, second):
+    """A person seen by every camera holds the model. One seen by two images is
+    checked against it: a static object detected as a person (the same 3D points
+    in both) fits and stays; a phantom (a different body in each image, linked
+    by the association) misses and is left out."""
+    from colmap_vc.camera_check import check_few_view_people, unchecked_people
+
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    person = rng.normal(0, 0.3, (17, 3)) * [1, 2, 1] + [0, -0.9, 0]
+    held = _tracks_from_points(rec, person, rng)
+    ids = sorted(rec.images)[:2]
+    other = rng.normal(0, 0.3, (17, 3)) * [1, 2, 1] + [1.0, -0.9, 0.5]
+    extra = _tracks_from_points(rec, other, rng)
+    extra = subset(extra, np.isin(extra.image_id, ids))
+    if second == "phantom":  # the second image sees another body elsewhere
+        body = rng.normal(0, 0.3, (17, 3)) * [1, 2, 1] + [-1.0, -0.9, -0.5]
+        moved = _tracks_from_points(rec, body, rng)
+        at = extra.image_id == ids[1]
+        extra.xy_img[at] = moved.xy_img[moved.image_id == ids[1]]
+    n = len(person)
+    tracks = KeypointTracks(
+        track=np.r_[held.track, extra.track + n],
+        image_id=np.r_[held.image_id, extra.image_id],
+        point2D_idx=np.zeros(len(held.track) + len(extra.track), np.int64),
+        xy_img=np.r_[held.xy_img, extra.xy_img],
+        keys=np.stack([np.repeat([0, 1], n), np.r_[np.arange(n), np.arange(n)]], 1),
+    )
+    assert unchecked_people(tracks) == [1]
+    kept, missed = check_few_view_people(rec, tracks, [1], 2.5, 4.0)
+    if second == "object":
+        assert not missed and len(kept.track) == len(tracks.track)
+    else:
+        assert list(missed) == [1] and missed[1] > 20
+        assert (kept.keys[kept.track, 0] == 0).all()
 
 
 def test_anny_keypoint_mirror_exchanges_named_pairs():
