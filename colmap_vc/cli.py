@@ -420,6 +420,8 @@ def _run_map(cmd: Map) -> int:
     )
     for name, reason in summary.unregistered.items():
         sys.stdout.write(f"  not registered: {name}: {reason}\n")
+    for name, how in summary.re_posed.items():
+        sys.stdout.write(f"  {name}: {how}\n")
     return 0
 
 

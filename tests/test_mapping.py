@@ -61,6 +61,8 @@ def test_augmented_dome_registers_every_image_accurately(
     ran = json.loads((summary.model_dir / mapping.OPTIONS_FILE).read_text())
     assert ran["options"]["num_threads"] == 2 and ran["registered"] == 6
     assert ran["database"] == str(augmented.resolve())
+    # Clean priors: the camera check moves no camera (none turned, none off).
+    assert summary.re_posed == {} and ran["re_posed"] == {}
 
 
 def test_a_plain_database_maps_as_plain_colmap_and_says_why(dome_scene, tmp_path):

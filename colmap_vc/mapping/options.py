@@ -137,6 +137,8 @@ class MappingSummary:
     elapsed_s: float
     metric_scale: MetricScale | None = None  # None: the model's scale is arbitrary
     timings_s: dict[str, float] = field(default_factory=dict)  # seconds per stage
+    re_posed: dict[str, str] = field(default_factory=dict)  # name -> how the
+    # camera check moved it
 
     @property
     def num_registered(self) -> int:

@@ -64,6 +64,7 @@ def write_run_options(
         "registered": summary.num_registered,
         "images": summary.num_images,
         "timings_s": summary.timings_s,
+        "re_posed": summary.re_posed,
     }
     (model_dir / OPTIONS_FILE).write_text(json.dumps(record, indent=1) + "\n")
 

@@ -132,6 +132,7 @@ def _map_copy(
     lap = time.perf_counter()
     left_out: dict[str, str] = {}
     mirrored: tuple[str, ...] = ()
+    re_posed: dict[str, str] = {}
     people = None
     if best is not None and best_key is not None and options.keypoint_ba:
         best, kba = keypoint_bundle_adjustment(
@@ -140,6 +141,15 @@ def _map_copy(
         models[best_key] = best
         left_out.update(kba.left_out or {})
         mirrored, people = kba.mirrored, kba.people
+        re_posed = {
+            name: (
+                "re-posed with its people's left and right exchanged (a pose "
+                "estimator saw them from the back as if from the front)"
+                if name in mirrored
+                else "re-posed by PnP on the keypoints the other cameras triangulate"
+            )
+            for name in kba.relocalised
+        }
     timings["refinement"] = time.perf_counter() - lap
     lap = time.perf_counter()
     if best is not None and inputs.priors is not None:
@@ -196,6 +206,7 @@ def _map_copy(
         elapsed_s=time.perf_counter() - t0,
         metric_scale=scale,
         timings_s=timings,
+        re_posed=re_posed,
     )
     return best, summary
 
