@@ -2,7 +2,9 @@
 
 See :func:`check_cameras_inplace`. A wrong camera is worse than none: a camera that
 contradicts the others is re-posed where its keypoints fit (as labelled, or with its
-people's left and right exchanged) or left out, with the reason.
+people's left and right exchanged) or left out, with the reason. And the people
+check: a person only two images see is checked against the model the others hold
+(:func:`check_few_view_people`).
 """
 
 from __future__ import annotations
@@ -408,7 +410,7 @@ def check_cameras_inplace(
     mirror: dict[int, int] | None = None,
     num_classic: dict[int, int] | None = None,
 ) -> tuple[list[str], dict[str, str], list[str]]:
-    """Each camera against keypoint points two *other* cameras triangulate.
+    """Each camera against keypoint points *other* cameras triangulate.
 
     A camera whose keypoints miss the points of every pair of other cameras (the
     best pair's median error above ``max_check_ratio`` times the median camera's)
@@ -421,12 +423,13 @@ def check_cameras_inplace(
     every left landmark right (pose2sim_single cam02 at t050 and t070). When that
     fits, the camera is re-posed, its keypoints join their counterparts' tracks and
     its surface VCs (from the mesh turned front to back) leave the model. Else the
-    camera is left out. When no camera misses by that much, a camera whose people
-    fit the points all other cameras triangulate significantly better with left
-    and right exchanged (:func:`labels_exchanged`) is re-posed with them: a
-    nearly symmetric pose lets a turned prior fit within the ratio. A camera that
-    classic keypoints place
-    (``min_classic_support`` model points) is a witness, never judged: there the
+    camera is left out. When no camera misses by that much, a camera one of whose
+    people fits the points all other cameras triangulate significantly better
+    with left and right exchanged (:func:`labels_exchanged`) is re-posed with them
+    when the adjusted model then fits all keypoints better (:func:`try_exchange`):
+    a nearly symmetric pose lets a turned prior fit within the ratio. A camera
+    that classic keypoints place (``min_classic_support`` model points) is a
+    witness, never judged: there the
     people are what is wrong. Needs 4+ cameras (with 3, two cameras always agree
     with each other). Cameras are visited in name order, worst first; ``adjust``
     bundle-adjusts the model after each change. Returns (re-posed names, left out:
