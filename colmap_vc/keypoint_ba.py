@@ -33,11 +33,7 @@ import numpy as np
 import pycolmap
 
 from . import database
-from .camera_check import (
-    check_cameras_inplace,
-    check_few_view_people,
-    unchecked_people,
-)
+from .camera_check import check_cameras_inplace
 from .gba.ceres import PeopleNoise, bundle_adjust_inplace
 from .gba.noise import cluster_noise
 from .keypoint_tracks import (
@@ -50,6 +46,7 @@ from .keypoint_tracks import (
     surface_tracks,
     triangulate_tracks,
 )
+from .people_check import check_few_view_people, unchecked_people
 
 logger = logging.getLogger(__name__)
 

@@ -319,3 +319,36 @@ def add_keypoint_points(
                 track.add_element(int(tracks.image_id[o]), int(tracks.point2D_idx[o]))
         rec.add_point3D(X[t], track)
     return good, counts
+
+
+def residuals_px(
+    camera: pycolmap.Camera, cam_from_world: FloatArray, xy: FloatArray, X: FloatArray
+) -> FloatArray:
+    """Reprojection errors (N,) of points X (N, 3) against pixels xy (N, 2)."""
+    Xc = X @ cam_from_world[:, :3].T + cam_from_world[:, 3]
+    err = np.full(len(X), np.inf)
+    front = Xc[:, 2] > 1e-6
+    if front.any():
+        proj = np.asarray(camera.img_from_cam(Xc[front]))
+        err[front] = np.linalg.norm(proj - xy[front], axis=1)
+    return err
+
+
+def correspondences(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    image_id: int,
+    witnesses: BoolArray,
+    min_views: int,
+) -> tuple[FloatArray, FloatArray, IndexArray, IndexArray]:
+    """Image ``image_id``'s keypoints (K, 2), the points (K, 3) the ``witnesses``
+    observations triangulate (tracks they see ``min_views``+ times; an exact two for
+    a pair), the view counts (K,) and the tracks (K,)."""
+    X, counts = triangulate_tracks(rec, subset(tracks, witnesses))
+    pad = max(tracks.num_tracks - len(X), 0)
+    X = np.r_[X, np.full((pad, 3), np.nan)]
+    counts = np.r_[counts, np.zeros(pad, np.int64)]
+    mine = tracks.image_id == image_id
+    t = tracks.track[mine]
+    ok = (counts[t] >= min_views) & np.isfinite(X[t]).all(axis=1)
+    return tracks.xy_img[mine][ok], X[t[ok]], counts[t[ok]], t[ok]

@@ -379,7 +379,7 @@ def test_camera_check_tests_left_and_right_where_no_camera_misses_by_far(
 
 
 def test_labels_exchanged_needs_a_gain_beyond_the_medians_sampling_error():
-    from colmap_vc.camera_check import labels_exchanged
+    from colmap_vc.label_check import labels_exchanged
 
     assert labels_exchanged(9.0, 4.5, 17, 2.0)  # half: 2.8 standard errors
     assert not labels_exchanged(9.0, 6.0, 17, 2.0)  # 2/3: 1.6
@@ -395,7 +395,7 @@ def test_a_person_two_images_see_is_checked_against_the_others(dome_scene, rng, 
     checked against it: a static object detected as a person (the same 3D points
     in both) fits and stays; a phantom (a different body in each image, linked
     by the association) misses and is left out."""
-    from colmap_vc.camera_check import check_few_view_people, unchecked_people
+    from colmap_vc.people_check import check_few_view_people, unchecked_people
 
     rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     person = rng.normal(0, 0.3, (17, 3)) * [1, 2, 1] + [0, -0.9, 0]

@@ -1,0 +1,89 @@
+"""People check: a person only two images see is checked against the model the
+other people hold (:func:`check_few_view_people`): two images can always be bent
+until the rays of anything linked across them meet."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pycolmap
+
+from .keypoint_tracks import (
+    KeypointTracks,
+    observed_in_posed_images,
+    residuals_px,
+    subset,
+    triangulate_tracks,
+)
+
+logger = logging.getLogger(__name__)
+
+
+def person_errors(
+    rec: pycolmap.Reconstruction, tracks: KeypointTracks
+) -> dict[int, float]:
+    """Each person's (identity's) median keypoint reprojection error, pixels,
+    against the points all its views triangulate with the model's poses."""
+    assert tracks.keys is not None
+    X, counts = triangulate_tracks(rec, tracks)
+    posed = observed_in_posed_images(rec, tracks)
+    posed &= (counts[tracks.track] >= 2) & np.isfinite(X[tracks.track]).all(axis=1)
+    err = np.full(len(tracks.track), np.nan)
+    for image_id in np.unique(tracks.image_id[posed]):  # loop over images
+        sel = posed & (tracks.image_id == image_id)
+        image = rec.image(int(image_id))
+        err[sel] = residuals_px(
+            rec.camera(image.camera_id),
+            image.cam_from_world().matrix(),
+            tracks.xy_img[sel],
+            X[tracks.track[sel]],
+        )
+    ident = tracks.keys[tracks.track, 0]
+    return {
+        int(k): float(np.median(err[posed & (ident == k)]))
+        for k in np.unique(ident[posed])
+    }
+
+
+def people_views(tracks: KeypointTracks) -> dict[int, int]:
+    """Each person's (identity's) number of distinct images."""
+    assert tracks.keys is not None
+    ident = tracks.keys[tracks.track, 0]
+    pairs = np.unique(np.stack([ident, tracks.image_id], axis=1), axis=0)
+    people, views = np.unique(pairs[:, 0], return_counts=True)
+    return dict(zip(people.tolist(), views.tolist(), strict=True))
+
+
+def unchecked_people(tracks: KeypointTracks, min_views: int = 3) -> list[int]:
+    """The people seen by fewer than ``min_views`` images."""
+    return [k for k, n in people_views(tracks).items() if n < min_views]
+
+
+def check_few_view_people(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    few: list[int],
+    max_ratio: float,
+    floor_px: float,
+) -> tuple[KeypointTracks, dict[int, float]]:
+    """``tracks`` without those of the people ``few`` (seen by two images, left
+    out of ``rec``'s adjustment) whose keypoints miss the model the other people
+    hold, and their median errors: above ``max_ratio`` times the median of the
+    others' errors and above ``floor_px``.
+
+    Two images can always be bent until the rays of a person linked across them
+    meet, so such a person is checked against poses it did not shape: a false
+    detection linked across two images (the synthetic scenes' random bodies)
+    misses, a static object detected as a person (pose2sim's skeleton model,
+    1.5-5 px) fits and stays."""
+    errs = person_errors(rec, tracks)
+    logger.debug("person check: %s", {k: round(e, 1) for k, e in errs.items()})
+    held = [e for k, e in errs.items() if k not in few]
+    if not held:
+        return tracks, {}
+    limit = max(max_ratio * float(np.median(held)), floor_px)
+    missed = {k: errs.get(k, np.inf) for k in few if not errs.get(k, np.inf) <= limit}
+    assert tracks.keys is not None
+    keep = ~np.isin(tracks.keys[tracks.track, 0], list(missed))
+    return subset(tracks, keep), missed
