@@ -187,17 +187,21 @@ def mirrored_tracks(tracks: KeypointTracks, mirror: dict[int, int]) -> IndexArra
     return np.where((partner >= 0) & (code[at] == want), at, -1).astype(np.int64)
 
 
-def triangulate_tracks(
-    rec: pycolmap.Reconstruction, tracks: KeypointTracks
-) -> tuple[FloatArray, IndexArray]:
-    """DLT point (T, 3) of each track (the model's poses) and its view count (T,).
+@dataclass(frozen=True, kw_only=True, slots=True)
+class TrackSystem:
+    """The DLT equations of every observation of some tracks (the model's poses):
+    a track's point from any subset of its observations without recomputing."""
 
-    A point behind any of its cameras (or at infinity) is NaN. Observations in
-    images without a pose (left out by a camera check) do not count.
-    """
-    num = tracks.num_tracks
+    rows: FloatArray  # (O, 2, 4) unit rows of each observation (zero: not posed)
+    depth_row: FloatArray  # (O, 4) the point's depth in the observation's camera
+    posed: BoolArray  # (O,) the observation's image has a pose
+    normal: FloatArray  # (T, 4, 4) sum of rows^T rows over each track's posed obs.
+
+
+def track_system(rec: pycolmap.Reconstruction, tracks: KeypointTracks) -> TrackSystem:
+    """The DLT equations of ``tracks``' observations with ``rec``'s poses."""
     rows = np.zeros((len(tracks.track), 2, 4))
-    depth_row = np.zeros((len(tracks.track), 4))  # z of the point in its camera
+    depth_row = np.zeros((len(tracks.track), 4))
     posed = observed_in_posed_images(rec, tracks)
     for image_id in np.unique(tracks.image_id[posed]):  # loop over images
         sel = tracks.image_id == image_id
@@ -208,21 +212,51 @@ def triangulate_tracks(
         rows[sel, 1] = uv[:, 1:2] * T[2] - T[1]
         depth_row[sel] = T[2]
     rows[posed] /= np.linalg.norm(rows[posed], axis=2, keepdims=True)
-    A = np.zeros((num, 4, 4))  # normal equations A^T A per track
-    np.add.at(A, tracks.track, np.einsum("oki,okj->oij", rows, rows))
-    _, vecs = np.linalg.eigh(A)
+    normal = np.zeros((tracks.num_tracks, 4, 4))
+    np.add.at(normal, tracks.track, np.einsum("oki,okj->oij", rows, rows))
+    return TrackSystem(rows=rows, depth_row=depth_row, posed=posed, normal=normal)
+
+
+def solve_tracks(
+    system: TrackSystem, tracks: KeypointTracks, leave_out: BoolArray | None = None
+) -> tuple[FloatArray, IndexArray]:
+    """DLT point (T, 3) of each track and its view count (T,), from its posed
+    observations except those in ``leave_out`` (O,). A point behind any of its
+    cameras (or at infinity) is NaN."""
+    use = system.posed if leave_out is None else system.posed & ~leave_out
+    normal = system.normal
+    if leave_out is not None and (system.posed & leave_out).any():
+        out = system.posed & leave_out
+        normal = normal.copy()
+        np.subtract.at(
+            normal,
+            tracks.track[out],
+            np.einsum("oki,okj->oij", system.rows[out], system.rows[out]),
+        )
+    _, vecs = np.linalg.eigh(normal)
     X = vecs[:, :, 0]
     w = np.where(np.abs(X[:, 3]) > 1e-12, X[:, 3], np.nan)
     X = X / w[:, None]
-    behind = np.zeros(num, dtype=bool)
+    behind = np.zeros(len(X), dtype=bool)
     np.logical_or.at(
         behind,
-        tracks.track[posed],
-        np.einsum("oi,oi->o", depth_row[posed], X[tracks.track[posed]]) <= 0,
+        tracks.track[use],
+        np.einsum("oi,oi->o", system.depth_row[use], X[tracks.track[use]]) <= 0,
     )
     X[behind] = np.nan
-    counts = np.bincount(tracks.track[posed], minlength=num)
+    counts = np.bincount(tracks.track[use], minlength=len(X))
     return X[:, :3], counts
+
+
+def triangulate_tracks(
+    rec: pycolmap.Reconstruction, tracks: KeypointTracks
+) -> tuple[FloatArray, IndexArray]:
+    """DLT point (T, 3) of each track (the model's poses) and its view count (T,).
+
+    A point behind any of its cameras (or at infinity) is NaN. Observations in
+    images without a pose (left out by a camera check) do not count.
+    """
+    return solve_tracks(track_system(rec, tracks), tracks)
 
 
 def observed_in_posed_images(

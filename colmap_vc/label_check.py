@@ -16,12 +16,13 @@ import pycolmap
 from .keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
-    correspondences,
     delete_points_observing,
     keypoint_observations,
     observed_in_posed_images,
     relabelled,
     residuals_px,
+    solve_tracks,
+    track_system,
     triangulate_tracks,
 )
 from .structs import FloatArray, IndexArray
@@ -58,25 +59,29 @@ def label_test(
     swapped: KeypointTracks,
     image_id: int,
     identity: int,
+    others: tuple[FloatArray, IndexArray],
     options: KeypointBaOptions,
     max_error_px: float,
 ) -> tuple[float, float, int, pycolmap.Rigid3d | None]:
     """Person ``identity`` of image ``image_id`` as labelled against the same with
     left and right exchanged (``swapped``), each with the image at its best pose
-    for all its keypoints, against the points all *other* cameras triangulate:
+    for all its keypoints, against ``others``: the points all *other* cameras
+    triangulate and their view counts (the same for both labellings). Returns
     (the person's median error as labelled, exchanged, its number of keypoints,
     the image's pose with the exchanged labels). As labelled: the better of the
     current pose and PnP."""
     assert tracks.keys is not None
     image = rec.image(image_id)
     camera = rec.camera(image.camera_id)
+    X, counts = others
     errors: list[float] = []
     pose: pycolmap.Rigid3d | None = None
     count = 0
     for labels in (tracks, swapped):
-        xy, pts, _, t = correspondences(
-            rec, labels, image_id, labels.image_id != image_id, 2
-        )
+        mine = labels.image_id == image_id
+        t = labels.track[mine]
+        ok = (counts[t] >= 2) & np.isfinite(X[t]).all(axis=1)
+        xy, pts, t = labels.xy_img[mine][ok], X[t[ok]], t[ok]
         theirs = tracks.keys[t, 0] == identity
         _, pose = robust_pnp(camera, xy, pts, options, max_error_px)
         poses = [] if pose is None else [pose.matrix()]
@@ -129,14 +134,16 @@ def best_exchange(
     assert tracks.keys is not None
     Found = tuple[float, int, int, KeypointTracks, pycolmap.Rigid3d, float, float]
     best: Found | None = None
+    system = track_system(rec, tracks)
     for i in sorted(candidates, key=lambda i: rec.image(i).name):
+        others = solve_tracks(system, tracks, tracks.image_id == i)
         mine = tracks.track[tracks.image_id == i]
         for identity in np.unique(tracks.keys[mine[partner[mine] >= 0], 0]).tolist():
             if (i, identity) in skip:
                 continue
             swapped = relabelled(tracks, i, partner, identity)
             as_labelled, exchanged, n, pose = label_test(
-                rec, tracks, swapped, i, identity, options, limit_px
+                rec, tracks, swapped, i, identity, others, options, limit_px
             )
             logger.debug(
                 "camera check: %s person %d as labelled %.1f px, exchanged %.1f px "

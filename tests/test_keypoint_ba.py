@@ -112,6 +112,26 @@ def test_a_left_out_camera_no_longer_counts_in_keypoint_tracks(mapped):
     assert np.allclose(X[kept], X_all[kept])
 
 
+def test_tracks_without_one_image_equal_triangulating_the_others(mapped):
+    """The label test triangulates each image's tracks from all *other* images by
+    taking that image's equations out of the whole system: the same points as
+    triangulating the other images' observations alone."""
+    from colmap_vc.keypoint_tracks import solve_tracks, track_system
+
+    db, rec = mapped
+    registered = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
+    tracks = keypoint_tracks(db, registered)
+    system = track_system(rec, tracks)
+    for image_id in registered[:3]:
+        mine = tracks.image_id == image_id
+        X, counts = solve_tracks(system, tracks, mine)
+        X_ref, counts_ref = triangulate_tracks(rec, subset(tracks, ~mine))
+        n = len(counts_ref)
+        assert np.array_equal(counts[:n], counts_ref)
+        ok = (counts_ref >= 2) & np.isfinite(X_ref).all(axis=1)
+        assert ok.sum() > 10 and np.allclose(X[:n][ok], X_ref[ok], atol=1e-6)
+
+
 def _turned(
     rec: pycolmap.Reconstruction, rng: np.random.Generator, deg: float
 ) -> pycolmap.Reconstruction:
