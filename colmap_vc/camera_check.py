@@ -24,7 +24,7 @@ from .keypoint_tracks import (
     residuals_px,
 )
 from .label_check import exchange_labels_inplace, robust_pnp, try_exchange
-from .structs import FloatArray
+from .structs import FloatArray, IndexArray
 
 if TYPE_CHECKING:
     from .keypoint_ba import KeypointBaOptions
@@ -82,6 +82,7 @@ def check_cameras_inplace(
     *,
     mirror: dict[int, int] | None = None,
     num_classic: dict[int, int] | None = None,
+    vc_identity: dict[int, IndexArray] | None = None,
 ) -> tuple[list[str], dict[str, str], list[str]]:
     """Each camera against keypoint points *other* cameras triangulate.
 
@@ -105,7 +106,9 @@ def check_cameras_inplace(
     witness, never judged: there the
     people are what is wrong. Needs 4+ cameras (with 3, two cameras always agree
     with each other). Cameras are visited in name order, worst first; ``adjust``
-    bundle-adjusts the model after each change. Returns (re-posed names, left out:
+    bundle-adjusts the model after each change; ``vc_identity`` (per image, the
+    person identity of each VC) keeps the surface VCs of an image's other people
+    when one person is exchanged. Returns (re-posed names, left out:
     reason, re-posed with left/right exchanged).
     """
     relocalised: list[str] = []
@@ -164,6 +167,7 @@ def check_cameras_inplace(
                 scale_px,
                 num_classic,
                 adjust,
+                vc_identity,
             )
             if found is None:
                 break

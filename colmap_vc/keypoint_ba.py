@@ -45,6 +45,7 @@ from .keypoint_tracks import (
     loss_scale_px,
     surface_tracks,
     triangulate_tracks,
+    vc_identities,
 )
 from .people_check import check_few_view_people, unchecked_people
 
@@ -252,6 +253,7 @@ def keypoint_bundle_adjustment(
             lambda rec: bundle_adjust_inplace(rec, loss, people),
             mirror=mirror,
             num_classic=num_classic,
+            vc_identity=vc_identities(Path(database_path)),
         )
     summary = KeypointBaSummary(
         num_tracks=int(good.sum()),

@@ -81,6 +81,20 @@ def surface_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTracks
     return body_tracks(database_path, image_ids, surface=True)
 
 
+def vc_identities(database_path: Path) -> dict[int, IndexArray]:
+    """Per image, the person identity (``person_identities``) of each of its VC
+    keypoints, in their order after the classic keypoints (-1: none)."""
+    vc_keypoints, _ = database.read_virtual_correspondences(database_path)
+    identity = person_identities(database.read_person_associations(database_path))
+    return {
+        v.image_id: np.array(
+            [identity.get((v.image_id, int(p)), -1) for p in v.person_id],
+            dtype=np.int64,
+        )
+        for v in vc_keypoints  # loop over images
+    }
+
+
 def body_tracks(
     database_path: Path, image_ids: IndexArray, *, surface: bool
 ) -> KeypointTracks:

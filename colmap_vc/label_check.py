@@ -172,17 +172,23 @@ def exchange_labels_inplace(
     pose: pycolmap.Rigid3d,
     num_classic: dict[int, int],
     options: KeypointBaOptions,
+    person: tuple[int, IndexArray] | None = None,
 ) -> None:
     """Re-pose image ``image_id`` at ``pose`` with its people's left and right
     exchanged: the keypoint points are rebuilt from ``swapped`` (``tracks`` with
     that image's keypoints on their counterparts' tracks) and the image's surface
-    VCs, from the mesh turned front to back, leave the model."""
+    VCs, from the mesh turned front to back, leave the model. With ``person``
+    (an identity and the identity of each of the image's VCs) only that person's
+    surface VCs leave: a static camera's image holds every instant's people."""
     rec.frame(rec.image(image_id).frame_id).rig_from_world = pose
     delete_points_observing(rec, keypoint_observations(tracks))
+    first = num_classic[image_id]
     surface = [
         k
         for k, p in enumerate(rec.image(image_id).points2D)  # loop over keypoints
-        if k >= num_classic[image_id] and p.has_point3D()
+        if k >= first
+        and p.has_point3D()
+        and (person is None or person[1][k - first] == person[0])
     ]
     for k in surface:  # its surface VCs
         rec.delete_observation(image_id, k)
@@ -223,12 +229,14 @@ def try_exchange(
     scale_px: float,
     num_classic: dict[int, int],
     adjust: Callable[[pycolmap.Reconstruction], object],
+    vc_identity: dict[int, IndexArray] | None = None,
 ) -> tuple[KeypointTracks, int, float, float] | None:
     """Exchange left and right of the person :func:`best_exchange` finds, when
     the adjusted model then fits all keypoints better (:func:`keypoint_cost`):
     (the new tracks, the image re-posed, median error as labelled, exchanged).
     An exchange the adjustment does not confirm is undone and the next person is
-    tried; None when no exchange is confirmed."""
+    tried; None when no exchange is confirmed. ``vc_identity`` (per image, the
+    identity of each VC) limits the surface VCs that leave to that person's."""
     tried: set[tuple[int, int]] = set()
     before = keypoint_cost(rec, tracks, scale_px)
     while True:
@@ -239,8 +247,13 @@ def try_exchange(
             return None
         image_id, identity, swapped, pose, as_labelled, exchanged = found
         trial = pycolmap.Reconstruction(rec)
+        person = (
+            None
+            if vc_identity is None or image_id not in vc_identity
+            else (identity, vc_identity[image_id])
+        )
         exchange_labels_inplace(
-            trial, tracks, swapped, image_id, pose, num_classic, options
+            trial, tracks, swapped, image_id, pose, num_classic, options, person
         )
         adjust(trial)
         after = keypoint_cost(trial, swapped, scale_px)
@@ -253,7 +266,7 @@ def try_exchange(
         )
         if after < before:
             exchange_labels_inplace(
-                rec, tracks, swapped, image_id, pose, num_classic, options
+                rec, tracks, swapped, image_id, pose, num_classic, options, person
             )
             adjust(rec)
             return swapped, image_id, as_labelled, exchanged
