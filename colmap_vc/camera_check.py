@@ -179,8 +179,8 @@ def check_cameras_inplace(
                 "exchanged: they fit the points the other cameras triangulate "
                 "with a median error of %.1f px, against %.1f px as labelled, "
                 "and the adjusted model fits all keypoints better (the pose "
-                "estimator saw them from the back as if from the front); its "
-                "surface VCs are not used",
+                "estimator saw them from the back as if from the front); that "
+                "person's surface VCs are not used",
                 name,
                 exchanged,
                 as_labelled,
