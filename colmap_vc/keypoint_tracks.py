@@ -400,3 +400,23 @@ def correspondences(
     t = tracks.track[mine]
     ok = (counts[t] >= min_views) & np.isfinite(X[t]).all(axis=1)
     return tracks.xy_img[mine][ok], X[t[ok]], counts[t[ok]], t[ok]
+
+
+def track_residuals(rec: pycolmap.Reconstruction, tracks: KeypointTracks) -> FloatArray:
+    """(O,) reprojection error of each observation, pixels, against the point all
+    its track's views triangulate with the model's poses (inf: behind the camera;
+    NaN: an unposed image, a point seen once or none)."""
+    X, counts = triangulate_tracks(rec, tracks)
+    ok = observed_in_posed_images(rec, tracks)
+    ok &= (counts[tracks.track] >= 2) & np.isfinite(X[tracks.track]).all(axis=1)
+    err = np.full(len(tracks.track), np.nan)
+    for image_id in np.unique(tracks.image_id[ok]):  # loop over images
+        sel = ok & (tracks.image_id == image_id)
+        image = rec.image(int(image_id))
+        err[sel] = residuals_px(
+            rec.camera(image.camera_id),
+            image.cam_from_world().matrix(),
+            tracks.xy_img[sel],
+            X[tracks.track[sel]],
+        )
+    return err

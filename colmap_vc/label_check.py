@@ -18,12 +18,11 @@ from .keypoint_tracks import (
     add_keypoint_points,
     delete_points_observing,
     keypoint_observations,
-    observed_in_posed_images,
     relabelled,
     residuals_px,
     solve_tracks,
+    track_residuals,
     track_system,
-    triangulate_tracks,
 )
 from .structs import FloatArray, IndexArray
 
@@ -201,22 +200,9 @@ def keypoint_cost(
     """Cauchy cost (scale ``scale_px``) of every keypoint observation in a posed
     image against the point all its views triangulate: one number to compare two
     labellings of the same observations."""
-    X, counts = triangulate_tracks(rec, tracks)
-    posed = observed_in_posed_images(rec, tracks)
-    posed &= (counts[tracks.track] >= 2) & np.isfinite(X[tracks.track]).all(axis=1)
-    cost = 0.0
-    for image_id in np.unique(tracks.image_id[posed]):  # loop over images
-        sel = posed & (tracks.image_id == image_id)
-        image = rec.image(int(image_id))
-        r = residuals_px(
-            rec.camera(image.camera_id),
-            image.cam_from_world().matrix(),
-            tracks.xy_img[sel],
-            X[tracks.track[sel]],
-        )
-        r = np.minimum(r, 1e6)  # behind the camera: the loss saturates anyway
-        cost += float(np.sum(scale_px**2 * np.log1p((r / scale_px) ** 2)))
-    return cost
+    r = track_residuals(rec, tracks)
+    r = np.minimum(r[~np.isnan(r)], 1e6)  # behind the camera: the loss saturates
+    return float(np.sum(scale_px**2 * np.log1p((r / scale_px) ** 2)))
 
 
 def try_exchange(

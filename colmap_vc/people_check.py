@@ -11,10 +11,8 @@ import pycolmap
 
 from .keypoint_tracks import (
     KeypointTracks,
-    observed_in_posed_images,
-    residuals_px,
     subset,
-    triangulate_tracks,
+    track_residuals,
 )
 
 logger = logging.getLogger(__name__)
@@ -26,19 +24,8 @@ def person_errors(
     """Each person's (identity's) median keypoint reprojection error, pixels,
     against the points all its views triangulate with the model's poses."""
     assert tracks.keys is not None
-    X, counts = triangulate_tracks(rec, tracks)
-    posed = observed_in_posed_images(rec, tracks)
-    posed &= (counts[tracks.track] >= 2) & np.isfinite(X[tracks.track]).all(axis=1)
-    err = np.full(len(tracks.track), np.nan)
-    for image_id in np.unique(tracks.image_id[posed]):  # loop over images
-        sel = posed & (tracks.image_id == image_id)
-        image = rec.image(int(image_id))
-        err[sel] = residuals_px(
-            rec.camera(image.camera_id),
-            image.cam_from_world().matrix(),
-            tracks.xy_img[sel],
-            X[tracks.track[sel]],
-        )
+    err = track_residuals(rec, tracks)
+    posed = ~np.isnan(err)
     ident = tracks.keys[tracks.track, 0]
     return {
         int(k): float(np.median(err[posed & (ident == k)]))
