@@ -3,6 +3,10 @@ on it."""
 
 from __future__ import annotations
 
+import os
+import subprocess
+import sys
+
 import cv2
 import numpy as np
 import pycolmap
@@ -267,3 +271,59 @@ def test_an_up_that_disagrees_with_the_other_cameras_is_left_out(dome_scene) -> 
         gt, registered, {n: _gravity(true_up[n]) for n in names}, 25.0
     )
     assert sorted(kept) == names and left_out == {}
+
+
+_LARGE_UP_PROBLEM = """
+import sys
+import numpy as np
+import pycolmap
+from colmap_vc.gba.ceres import bundle_adjust_inplace
+from colmap_vc.gba.up import UpPriors
+
+rec = pycolmap.Reconstruction(sys.argv[1])
+for point_id in list(rec.point3D_ids()):
+    rec.delete_point3D(point_id)
+ids = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
+rng = np.random.default_rng(0)
+centre = np.mean([rec.image(int(i)).projection_center() for i in ids], axis=0)
+n = 30000 // len(ids) + 1  # 60000 residuals: COLMAP evaluates them on all threads
+X = centre + rng.normal(0, 0.5, (n, 3))
+for i in ids.tolist():
+    image = rec.image(i)
+    T = image.cam_from_world().matrix()
+    uv = np.asarray(rec.camera(image.camera_id).img_from_cam(X @ T[:, :3].T + T[:, 3]))
+    uv += rng.normal(0, 1.0, uv.shape)
+    image.points2D = pycolmap.Point2DList([pycolmap.Point2D(p) for p in uv])
+for k in range(n):
+    track = pycolmap.Track()
+    for i in ids.tolist():
+        track.add_element(i, k)
+    rec.add_point3D(X[k], track)
+up = UpPriors(
+    image_id=ids,
+    up_cam=np.array(
+        [rec.image(int(i)).cam_from_world().rotation.matrix() @ [0, 0, 1.0]
+         for i in ids]
+    ),
+    sigma_rad=np.full(len(ids), np.radians(1.0)),
+    pixel_noise_px=1.0,
+)
+summary = bundle_adjust_inplace(rec, 2.0, None, up)
+print("threads", summary.num_threads_used)
+"""
+
+
+def test_a_large_problem_with_ups_solves_on_several_threads(dome_scene) -> None:
+    """The ups are Python cost functions. A problem large enough for COLMAP to
+    use several threads once hung in pycolmap's solve, which keeps Python's lock
+    while a worker thread waits for it (`map --gba --static-cameras` on
+    pose2sim_multi). Run in a child process so that a hang fails the test."""
+    run = subprocess.run(
+        [sys.executable, "-c", _LARGE_UP_PROBLEM, str(dome_scene / "gt" / "sparse")],
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
+    assert run.returncode == 0, run.stderr[-2000:]
+    threads = int(run.stdout.split("threads")[-1])
+    assert threads > 1 or os.cpu_count() == 1  # else the test proves nothing

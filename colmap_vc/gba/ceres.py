@@ -61,7 +61,7 @@ def bundle_adjust_inplace(
     loss_scale_px: float,
     people: PeopleNoise | None = None,
     up: UpPriors | None = None,
-) -> pycolmap.BundleAdjustmentSummary:
+) -> pyceres.SolverSummary:
     """COLMAP's bundle adjustment of ``rec`` in place (intrinsics fixed).
 
     Args:
@@ -84,7 +84,7 @@ def bundle_adjust_inplace(
     if not weighted:
         adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
         alive = _add_up(adjuster.problem, rec, up)
-        summary = adjuster.solve()
+        summary = _solve(adjuster, options, config)
         del alive
         return summary
     assert people is not None
@@ -98,7 +98,7 @@ def bundle_adjust_inplace(
     X = np.array([rec.point3D(p).xyz for p in weighted], dtype=np.float64)
     keep_alive = _add_weighted(adjuster.problem, rec, work, weighted, X, people)
     keep_alive += _add_up(adjuster.problem, work, up)
-    summary = adjuster.solve()
+    summary = _solve(adjuster, options, config)
     del keep_alive
     for image_id in work.reg_image_ids():  # loop over images: the solved poses
         frame_id = work.image(image_id).frame_id
@@ -108,6 +108,29 @@ def bundle_adjust_inplace(
             rec.point3D(point_id).xyz = point.xyz
     for row, point_id in enumerate(weighted):  # loop over the people's points
         rec.point3D(point_id).xyz = X[row]
+    return summary
+
+
+def _solve(
+    adjuster: pycolmap.BundleAdjuster,
+    options: pycolmap.BundleAdjustmentOptions,
+    config: pycolmap.BundleAdjustmentConfig,
+) -> pyceres.SolverSummary:
+    """Solve the adjuster's problem with COLMAP's solver options for it, through
+    pyceres, which lets go of Python's lock while Ceres runs.
+
+    The cameras' up residuals are Python cost functions. pycolmap's own
+    ``adjuster.solve()`` keeps the lock, so once a problem is large enough for
+    COLMAP to evaluate it on several threads (50000 residuals), a worker thread
+    waits for the lock forever: `map` hung on pose2sim_multi's 20 images with
+    ``--gba``, and would on any large model with measured ups.
+    """
+    solver = pyceres.SolverOptions()
+    solver.mergedict(
+        options.ceres.create_solver_options(config, adjuster.problem).todict()
+    )
+    summary = pyceres.SolverSummary()
+    pyceres.solve(solver, adjuster.problem, summary)
     return summary
 
 
