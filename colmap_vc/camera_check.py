@@ -114,6 +114,8 @@ def check_cameras_inplace(
     relocalised: list[str] = []
     left_out: dict[str, str] = {}
     mirrored: list[str] = []
+    whole: set[str] = set()  # images with every person exchanged at once
+    exchanged_people: set[tuple[int, int]] = set()  # (image id, identity)
     scale_px = loss_scale_px(rec, options.loss_scale_px, options.loss_scale_frac)
     partner = mirrored_tracks(tracks, mirror or {})
     while True:
@@ -161,17 +163,19 @@ def check_cameras_inplace(
                 rec,
                 tracks,
                 partner,
-                [i for i in judged if rec.image(i).name not in mirrored],
+                [i for i in judged if rec.image(i).name not in whole],
                 options,
                 limit,
                 scale_px,
                 num_classic,
                 adjust,
                 vc_identity,
+                exchanged_people,
             )
             if found is None:
                 break
-            tracks, image_id, as_labelled, exchanged = found
+            tracks, image_id, identity, as_labelled, exchanged = found
+            exchanged_people.add((image_id, identity))
             partner = mirrored_tracks(tracks, mirror)
             name = rec.image(image_id).name
             logger.warning(
@@ -185,8 +189,9 @@ def check_cameras_inplace(
                 exchanged,
                 as_labelled,
             )
-            relocalised.append(name)
-            mirrored.append(name)
+            for names in (relocalised, mirrored):
+                if name not in names:
+                    names.append(name)
             continue
         image = rec.image(worst)
         name = image.name
@@ -244,6 +249,7 @@ def check_cameras_inplace(
             )
             relocalised.append(name)
             mirrored.append(name)
+            whole.add(name)
         else:
             left_out[name] = (
                 f"left out: its keypoints miss the points the other cameras "

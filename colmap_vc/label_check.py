@@ -216,14 +216,18 @@ def try_exchange(
     num_classic: dict[int, int],
     adjust: Callable[[pycolmap.Reconstruction], object],
     vc_identity: dict[int, IndexArray] | None = None,
-) -> tuple[KeypointTracks, int, float, float] | None:
+    done: set[tuple[int, int]] | None = None,
+) -> tuple[KeypointTracks, int, int, float, float] | None:
     """Exchange left and right of the person :func:`best_exchange` finds, when
     the adjusted model then fits all keypoints better (:func:`keypoint_cost`):
-    (the new tracks, the image re-posed, median error as labelled, exchanged).
-    An exchange the adjustment does not confirm is undone and the next person is
-    tried; None when no exchange is confirmed. ``vc_identity`` (per image, the
-    identity of each VC) limits the surface VCs that leave to that person's."""
-    tried: set[tuple[int, int]] = set()
+    (the new tracks, the image re-posed, the person, median error as labelled,
+    exchanged). An exchange the adjustment does not confirm is undone and the
+    next person is tried; None when no exchange is confirmed. ``vc_identity``
+    (per image, the identity of each VC) limits the surface VCs that leave to
+    that person's; (image, person) pairs in ``done`` (exchanged before) are not
+    tried again, the image's other people are: a static camera's image holds the
+    same person seen from the back at several instants."""
+    tried: set[tuple[int, int]] = set(done or ())
     before = keypoint_cost(rec, tracks, scale_px)
     while True:
         found = best_exchange(
@@ -255,5 +259,5 @@ def try_exchange(
                 rec, tracks, swapped, image_id, pose, num_classic, options, person
             )
             adjust(rec)
-            return swapped, image_id, as_labelled, exchanged
+            return swapped, image_id, identity, as_labelled, exchanged
         tried.add((image_id, identity))

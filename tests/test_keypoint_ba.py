@@ -398,6 +398,81 @@ def test_camera_check_tests_left_and_right_where_no_camera_misses_by_far(
             assert np.array_equal(got, truth[im.name]), im.name
 
 
+def test_every_person_a_camera_sees_from_the_back_is_exchanged(dome_scene, rng):
+    """A static camera's one image holds the people of every instant; a person
+    on a treadmill seen from the back is mislabelled at several of them. Each
+    (image, person) is exchanged on its own, so the second person of the same
+    camera is too (a camera once left the candidates after one exchange), and
+    every keypoint then fits its point."""
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    people = []
+    for shift in ([0.0, 0.0, 0.0], [0.6, 0.4, 0.0]):  # two instants' people
+        left = rng.normal(0, 0.3, (12, 3)) * [1, 2, 1] + [-0.25, -0.9, 0]
+        pts = np.repeat(left, 2, axis=0)
+        pts[1::2, 0] = -pts[1::2, 0] + 0.05 * rng.normal(size=12)
+        people.append(pts + shift)
+    points = np.concatenate(people)
+    n = len(people[0])
+    tracks = _tracks_from_points(gt, points, rng, noise_px=1.0)
+    keys = np.stack([np.arange(2 * n) // n, 2000 + np.arange(2 * n) % n], axis=1)
+    swap = np.arange(2 * n) ^ 1  # left <-> right within each person
+    name = sorted(im.name for im in gt.images.values())[3]  # not a gauge camera
+    image_id = gt.find_image_with_name(name).image_id
+    sel = np.flatnonzero(tracks.image_id == image_id)
+    sel = sel[np.argsort(tracks.track[sel])]
+    xy = tracks.xy_img.copy()
+    xy[sel] = tracks.xy_img[sel][swap]  # both of its people mislabelled
+    tracks = KeypointTracks(
+        track=tracks.track,
+        image_id=tracks.image_id,
+        point2D_idx=tracks.track.copy(),  # keypoint k is point2D k of every image
+        xy_img=xy,
+        keys=keys,
+    )
+    rec = pycolmap.Reconstruction(gt)
+    for i in np.unique(tracks.image_id):
+        mine = np.flatnonzero(tracks.image_id == i)
+        mine = mine[np.argsort(tracks.track[mine])]
+        rec.image(int(i)).points2D = pycolmap.Point2DList(
+            [pycolmap.Point2D(p) for p in xy[mine]]
+        )
+    est = pycolmap.AbsolutePoseEstimationOptions()  # where the mapper put it
+    est.ransac.max_error = 1e3
+    image = rec.image(image_id)
+    found = pycolmap.estimate_and_refine_absolute_pose(
+        xy[sel], points, rec.camera(image.camera_id), est
+    )
+    assert found is not None
+    rec.frame(image.frame_id).rig_from_world = found["cam_from_world"]
+    add_keypoint_points(rec, tracks, 2)
+    options = KeypointBaOptions(
+        loss_scale_px=4.0, min_check_points=8, max_check_ratio=1e3
+    )
+    mirror = {2000 + k: 2000 + (k ^ 1) for k in range(n)}
+    relocalised, left_out, mirrored = check_cameras_inplace(
+        rec,
+        tracks,
+        options,
+        _adjust,
+        mirror=mirror,
+        num_classic=dict.fromkeys(rec.images, 0),
+    )
+    assert mirrored == relocalised == [name] and not left_out
+    errors = [  # every observation of the rebuilt points
+        np.linalg.norm(
+            np.asarray(
+                rec.camera(rec.image(e.image_id).camera_id).img_from_cam(
+                    rec.image(e.image_id).cam_from_world() * point.xyz
+                )
+            )
+            - rec.image(e.image_id).points2D[e.point2D_idx].xy
+        )
+        for point in rec.points3D.values()
+        for e in point.track.elements
+    ]
+    assert len(rec.points3D) == 2 * n and max(errors) < 6.0
+
+
 def test_labels_exchanged_needs_a_gain_beyond_the_medians_sampling_error():
     from colmap_vc.label_check import labels_exchanged
 
