@@ -112,7 +112,7 @@ def bundle_adjust_inplace(
 
 
 def _solve(
-    adjuster: pycolmap.BundleAdjuster,
+    adjuster: pycolmap.CeresBundleAdjuster,
     options: pycolmap.BundleAdjustmentOptions,
     config: pycolmap.BundleAdjustmentConfig,
 ) -> pyceres.SolverSummary:
