@@ -17,11 +17,15 @@ import pycolmap
 
 from .keypoint_tracks import (
     KeypointTracks,
+    add_keypoint_points,
     correspondences,
+    delete_points_observing,
+    keypoint_observations,
     loss_scale_px,
     mirrored_tracks,
     relabelled,
     residuals_px,
+    subset,
 )
 from .label_check import exchange_labels_inplace, robust_pnp, try_exchange
 from .structs import FloatArray, IndexArray
@@ -72,6 +76,43 @@ def classic_support(
         idx = np.asarray(image.get_observation_point2D_idxs(), dtype=np.int64)
         out[image_id] = int((idx < num_classic.get(image_id, 0)).sum())
     return out
+
+
+def _without_poor_witness(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    image_id: int,
+    identity: int,
+    options: KeypointBaOptions,
+) -> KeypointTracks:
+    """``tracks`` without person ``identity``'s keypoints in image ``image_id``
+    (just exchanged) when the image's other people hold at least as many
+    keypoints; the model's keypoint points are rebuilt from them.
+
+    The exchange put the camera on the right side. Its exchanged landmarks stay
+    poor witnesses: a pose estimator that took the person's back for the front
+    places them worse than the image's other people (pose2sim's videos: 15 px
+    against 10 px), and kept, they cost the static cameras 0.1-0.3 deg
+    (docs/real-data.md). With fewer other keypoints the camera's pose rests on
+    that person, who then stays.
+    """
+    assert tracks.keys is not None
+    mine = tracks.image_id == image_id
+    theirs = mine & (tracks.keys[tracks.track, 0] == identity)
+    if (mine & ~theirs).sum() < max(theirs.sum(), options.min_check_points):
+        return tracks
+    logger.info(
+        "camera check: %s person %d's %d exchanged keypoints leave the tracks "
+        "(the image's other people hold %d)",
+        rec.image(image_id).name,
+        identity,
+        int(theirs.sum()),
+        int((mine & ~theirs).sum()),
+    )
+    delete_points_observing(rec, keypoint_observations(tracks))
+    tracks = subset(tracks, ~theirs)
+    add_keypoint_points(rec, tracks, options.min_track_length)
+    return tracks
 
 
 def check_cameras_inplace(
@@ -176,6 +217,10 @@ def check_cameras_inplace(
                 break
             tracks, image_id, identity, as_labelled, exchanged = found
             exchanged_people.add((image_id, identity))
+            kept = _without_poor_witness(rec, tracks, image_id, identity, options)
+            if kept is not tracks:
+                tracks = kept
+                adjust(rec)
             partner = mirrored_tracks(tracks, mirror)
             name = rec.image(image_id).name
             logger.warning(

@@ -403,7 +403,9 @@ def test_every_person_a_camera_sees_from_the_back_is_exchanged(dome_scene, rng):
     on a treadmill seen from the back is mislabelled at several of them. Each
     (image, person) is exchanged on its own, so the second person of the same
     camera is too (a camera once left the candidates after one exchange), and
-    every keypoint then fits its point."""
+    every keypoint then fits its point. An exchanged person whose image holds
+    as many other keypoints leaves the tracks: a poor witness once the camera is
+    on the right side."""
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     people = []
     for shift in ([0.0, 0.0, 0.0], [0.6, 0.4, 0.0]):  # two instants' people
@@ -471,6 +473,10 @@ def test_every_person_a_camera_sees_from_the_back_is_exchanged(dome_scene, rng):
         for e in point.track.elements
     ]
     assert len(rec.points3D) == 2 * n and max(errors) < 6.0
+    # The first person exchanged leaves that image's tracks (the second holds as
+    # many keypoints); the second, then alone, stays as the camera's witness.
+    seen = [e.image_id for p in rec.points3D.values() for e in p.track.elements]
+    assert seen.count(image_id) == n
 
 
 def test_labels_exchanged_needs_a_gain_beyond_the_medians_sampling_error():
