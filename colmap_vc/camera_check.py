@@ -89,12 +89,13 @@ def _without_poor_witness(
     (just exchanged) when the image's other people hold at least as many
     keypoints; the model's keypoint points are rebuilt from them.
 
-    The exchange put the camera on the right side. Its exchanged landmarks stay
+    The exchange put the camera on the right side. The exchanged landmarks stay
     poor witnesses: a pose estimator that took the person's back for the front
-    places them worse than the image's other people (pose2sim's videos: 15 px
-    against 10 px), and kept, they cost the static cameras 0.1-0.3 deg
-    (docs/real-data.md). With fewer other keypoints the camera's pose rests on
-    that person, who then stays.
+    also places them worse (front and back differ in more than left and right).
+    Kept, they cost the pose2sim videos' static cameras 0.2-0.3 deg against the
+    calibration; left out, the cameras end as without any exchange or better
+    (docs/real-data.md, "People seen from the back"). With fewer other
+    keypoints the camera's pose rests on that person, who then stays.
     """
     assert tracks.keys is not None
     mine = tracks.image_id == image_id
