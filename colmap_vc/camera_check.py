@@ -93,7 +93,7 @@ def _without_poor_witness(
     poor witnesses: a pose estimator that took the person's back for the front
     also places them worse (front and back differ in more than left and right).
     Kept, they cost the pose2sim videos' static cameras 0.2-0.3 deg against the
-    calibration; left out, the cameras end as without any exchange or better
+    calibration; left out, the cameras end within 0.05 deg of no exchange at all
     (docs/real-data.md, "People seen from the back"). With fewer other
     keypoints the camera's pose rests on that person, who then stays.
     """
