@@ -314,6 +314,35 @@ def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
     return float(np.rad2deg(np.arccos(np.clip(cos, -1, 1))))
 
 
+def _posed_where_labels_fit(rec, image_id, xy, points) -> None:
+    """Pose image ``image_id`` where its keypoints ``xy`` (of ``points``) fit, as
+    the mapper would: PnP on the true points."""
+    image = rec.image(image_id)
+    est = pycolmap.AbsolutePoseEstimationOptions()
+    est.ransac.max_error = 1e3
+    found = pycolmap.estimate_and_refine_absolute_pose(
+        xy, points, rec.camera(image.camera_id), est
+    )
+    assert found is not None
+    rec.frame(image.frame_id).rig_from_world = found["cam_from_world"]
+
+
+def _label_check(rec, tracks, num_templates: int):
+    """The camera check where only the label test can fire (the ratio test is
+    off), tracks 2000 + k and 2000 + (k ^ 1) left/right counterparts."""
+    options = KeypointBaOptions(
+        loss_scale_px=4.0, min_check_points=8, max_check_ratio=1e3
+    )
+    return check_cameras_inplace(
+        rec,
+        tracks,
+        options,
+        _adjust,
+        mirror={2000 + k: 2000 + (k ^ 1) for k in range(num_templates)},
+        num_classic=dict.fromkeys(rec.images, 0),
+    )
+
+
 @pytest.mark.parametrize("exchanged", [True, False])
 def test_camera_check_tests_left_and_right_where_no_camera_misses_by_far(
     dome_scene, rng, exchanged
@@ -365,28 +394,11 @@ def test_camera_check_tests_left_and_right_where_no_camera_misses_by_far(
         rec = with_keypoints(xy)
         image = rec.find_image_with_name(name)
         # The mapper put it where those labels fit: PnP on the true points.
-        est = pycolmap.AbsolutePoseEstimationOptions()
-        est.ransac.max_error = 1e3
-        found = pycolmap.estimate_and_refine_absolute_pose(
-            xy[sel], points, rec.camera(image.camera_id), est
-        )
-        assert found is not None
-        rec.frame(image.frame_id).rig_from_world = found["cam_from_world"]
+        _posed_where_labels_fit(rec, image.image_id, xy[sel], points)
         assert _rotation_deg(image.cam_from_world().matrix(), truth[name]) > 10
     add_keypoint_points(rec, tracks, 2)
     # The ratio test alone would never fire: only the label test can.
-    options = KeypointBaOptions(
-        loss_scale_px=4.0, min_check_points=8, max_check_ratio=1e3
-    )
-    mirror = {2000 + k: 2000 + (k ^ 1) for k in range(len(points))}
-    relocalised, left_out, mirrored = check_cameras_inplace(
-        rec,
-        tracks,
-        options,
-        _adjust,
-        mirror=mirror,
-        num_classic=dict.fromkeys(rec.images, 0),
-    )
+    relocalised, left_out, mirrored = _label_check(rec, tracks, len(points))
     assert not left_out
     assert mirrored == relocalised == ([name] if exchanged else [])
     for im in rec.images.values():
@@ -438,27 +450,9 @@ def test_every_person_a_camera_sees_from_the_back_is_exchanged(dome_scene, rng):
         rec.image(int(i)).points2D = pycolmap.Point2DList(
             [pycolmap.Point2D(p) for p in xy[mine]]
         )
-    est = pycolmap.AbsolutePoseEstimationOptions()  # where the mapper put it
-    est.ransac.max_error = 1e3
-    image = rec.image(image_id)
-    found = pycolmap.estimate_and_refine_absolute_pose(
-        xy[sel], points, rec.camera(image.camera_id), est
-    )
-    assert found is not None
-    rec.frame(image.frame_id).rig_from_world = found["cam_from_world"]
+    _posed_where_labels_fit(rec, image_id, xy[sel], points)  # as the mapper would
     add_keypoint_points(rec, tracks, 2)
-    options = KeypointBaOptions(
-        loss_scale_px=4.0, min_check_points=8, max_check_ratio=1e3
-    )
-    mirror = {2000 + k: 2000 + (k ^ 1) for k in range(n)}
-    relocalised, left_out, mirrored = check_cameras_inplace(
-        rec,
-        tracks,
-        options,
-        _adjust,
-        mirror=mirror,
-        num_classic=dict.fromkeys(rec.images, 0),
-    )
+    relocalised, left_out, mirrored = _label_check(rec, tracks, n)
     assert mirrored == relocalised == [name] and not left_out
     errors = [  # every observation of the rebuilt points
         np.linalg.norm(
