@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
+from dataclasses import dataclass
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -36,6 +37,18 @@ if TYPE_CHECKING:
 logger = logging.getLogger(__name__)
 
 
+@dataclass(frozen=True, kw_only=True, slots=True)
+class CameraCheck:
+    """What the camera check did to a model."""
+
+    relocalised: list[str]  # images re-posed (by PnP, or with left/right exchanged)
+    left_out: dict[str, str]  # image name -> why it was deregistered
+    mirrored: list[str]  # images re-posed with (some of) their people exchanged
+    tracks: KeypointTracks
+    """The keypoint tracks as the model now holds them: exchanged people's labels
+    exchanged, people who left an image's tracks removed."""
+
+
 def best_two_view_check(
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
@@ -44,7 +57,12 @@ def best_two_view_check(
     min_points: int,
 ) -> tuple[float, FloatArray, FloatArray]:
     """The smallest median error of image ``image_id``'s keypoints against the
-    points any two other cameras triangulate, with those 2D-3D correspondences."""
+    points any two other cameras triangulate, with those 2D-3D correspondences.
+
+    The error is infinite when most of the points lie behind the camera (a camera
+    posed on the mirror side of its people); the correspondences are then those of
+    the pair with the most points, so that the camera can still be judged and
+    re-posed. Without any pair of ``min_points`` correspondences: (inf, empty)."""
     best = (np.inf, np.zeros((0, 2)), np.zeros((0, 3)))
     if not (tracks.image_id == image_id).any():
         return best
@@ -59,7 +77,7 @@ def best_two_view_check(
             if len(xy) < min_points:
                 continue
             med = float(np.median(residuals_px(camera, pose, xy, pts)))
-            if med < best[0]:
+            if med < best[0] or (np.isinf(best[0]) and len(xy) > len(best[1])):
                 best = (med, xy, pts)
     return best
 
@@ -125,7 +143,7 @@ def check_cameras_inplace(
     mirror: dict[int, int] | None = None,
     num_classic: dict[int, int] | None = None,
     vc_identity: dict[int, IndexArray] | None = None,
-) -> tuple[list[str], dict[str, str], list[str]]:
+) -> CameraCheck:
     """Each camera against keypoint points *other* cameras triangulate.
 
     A camera whose keypoints miss the points of every pair of other cameras (the
@@ -150,8 +168,7 @@ def check_cameras_inplace(
     with each other). Cameras are visited in name order, worst first; ``adjust``
     bundle-adjusts the model after each change; ``vc_identity`` (per image, the
     person identity of each VC) keeps the surface VCs of an image's other people
-    when one person is exchanged. Returns (re-posed names, left out:
-    reason, re-posed with left/right exchanged).
+    when one person is exchanged.
     """
     relocalised: list[str] = []
     left_out: dict[str, str] = {}
@@ -178,7 +195,8 @@ def check_cameras_inplace(
             checks[i] = best_two_view_check(
                 rec, tracks, i, witnesses[i], options.min_check_points
             )
-        errs = {i: c[0] for i, c in checks.items() if np.isfinite(c[0])}
+        # A camera with points behind it (inf) is judged; one without any is not.
+        errs = {i: c[0] for i, c in checks.items() if len(c[1])}
         if len(errs) < 4:
             break
         pinned = {
@@ -195,6 +213,8 @@ def check_cameras_inplace(
         )
         worst = max(judged, key=lambda i: (errs[i], rec.image(i).name))
         typical = float(np.median([e for i, e in errs.items() if i != worst]))
+        if not np.isfinite(typical):
+            break  # most cameras have the points behind them: nobody to trust
         limit = max(options.max_check_ratio * typical, scale_px)
         if errs[worst] <= limit:
             # No camera misses by far; one whose people fit clearly better with
@@ -306,4 +326,6 @@ def check_cameras_inplace(
             logger.warning("camera check: %s %s", name, left_out[name])
             rec.deregister_frame(image.frame_id)
         adjust(rec)
-    return relocalised, left_out, mirrored
+    return CameraCheck(
+        relocalised=relocalised, left_out=left_out, mirrored=mirrored, tracks=tracks
+    )

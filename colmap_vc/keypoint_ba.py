@@ -143,6 +143,9 @@ class KeypointBaSummary:
     people: PeopleNoise | None = None
     """The noise of each people observation (None without surface tracks): what
     a later bundle adjustment of the model weighs them by."""
+    tracks: KeypointTracks | None = None
+    """The keypoint tracks as the model holds them after the camera check (people
+    exchanged or left out there); None without keypoint VCs."""
 
 
 def with_loss_scale(
@@ -246,7 +249,7 @@ def keypoint_bundle_adjustment(
     left_out: dict[str, str] = {}
     mirrored: list[str] = []
     if options.check_cameras:
-        relocalised, left_out, mirrored = check_cameras_inplace(
+        check = check_cameras_inplace(
             out,
             tracks,
             options,
@@ -255,6 +258,12 @@ def keypoint_bundle_adjustment(
             num_classic=num_classic,
             vc_identity=vc_identities(Path(database_path)),
         )
+        relocalised, left_out, mirrored = (
+            check.relocalised,
+            check.left_out,
+            check.mirrored,
+        )
+        tracks = check.tracks
     summary = KeypointBaSummary(
         num_tracks=int(good.sum()),
         num_keypoint_observations=num_kp_obs,
@@ -265,6 +274,7 @@ def keypoint_bundle_adjustment(
         relocalised=tuple(relocalised),
         left_out=left_out,
         mirrored=tuple(mirrored),
+        tracks=tracks,
     )
     logger.info(
         "keypoint BA: %d keypoint tracks (%d observations), %d surface-VC "

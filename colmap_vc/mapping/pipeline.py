@@ -134,13 +134,14 @@ def _map_copy(
     mirrored: tuple[str, ...] = ()
     re_posed: dict[str, str] = {}
     people = None
+    tracks = None
     if best is not None and best_key is not None and options.keypoint_ba:
         best, kba = keypoint_bundle_adjustment(
             database_path, best, options.keypoint_ba_options, mirror=inputs.mirror
         )
         models[best_key] = best
         left_out.update(kba.left_out or {})
-        mirrored, people = kba.mirrored, kba.people
+        mirrored, people, tracks = kba.mirrored, kba.people, kba.tracks
         re_posed = {
             name: (
                 "re-posed with its people's left and right exchanged (a pose "
@@ -166,6 +167,7 @@ def _map_copy(
             image_dir,
             priors_path,
             people,
+            tracks,
             options.gravity_options,
             loss_scale_px=kba_options.loss_scale_px,
             min_sigma_px=kba_options.min_sigma_px,

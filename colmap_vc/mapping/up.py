@@ -26,7 +26,13 @@ from ..gba.ceres import PeopleNoise, bundle_adjust_inplace
 from ..gba.noise import cluster_noise
 from ..gba.up import UpPriors
 from ..gravity import Gravity, GravityOptions, measure_gravity
-from ..keypoint_tracks import keypoint_tracks, triangulate_tracks
+from ..keypoint_tracks import (
+    KeypointTracks,
+    keypoint_tracks,
+    observed_in_posed_images,
+    subset,
+    triangulate_tracks,
+)
 from .inputs import MapInputs
 from .priors import load_priors
 
@@ -50,15 +56,17 @@ class GravityResult:
 
 
 def keypoint_noise_px(
-    rec: pycolmap.Reconstruction, database_path: Path, min_sigma_px: float
+    rec: pycolmap.Reconstruction, tracks: KeypointTracks, min_sigma_px: float
 ) -> float | None:
     """What one keypoint residual is worth, pixels: the median over the model's
     keypoint observations of their noise with the error they share with their
     (image, person), sqrt(sigma^2 + N tau^2) (:mod:`colmap_vc.gba.noise`: a
     person's N keypoints in one image count as about one observation at their
-    shared error, not N). None without keypoint tracks."""
-    registered = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
-    tracks = keypoint_tracks(database_path, registered)
+    shared error, not N). ``tracks`` as the model holds them (the keypoint BA's
+    camera check may have exchanged a person's left and right: read as labelled,
+    that person's residuals are hundreds of pixels). None without keypoint tracks
+    in registered images."""
+    tracks = subset(tracks, observed_in_posed_images(rec, tracks))
     if tracks.num_tracks == 0:
         return None
     X, _ = triangulate_tracks(rec, tracks)
@@ -73,6 +81,7 @@ def refine_with_gravity_inplace(
     image_dir: Path,
     priors_path: Path | None,
     people: PeopleNoise | None,
+    tracks: KeypointTracks | None,
     options: GravityOptions,
     *,
     loss_scale_px: float,
@@ -82,7 +91,9 @@ def refine_with_gravity_inplace(
     """Measure the registered cameras' gravity and bundle-adjust ``rec`` with it
     (``loss_scale_px``: the reprojections' Cauchy scale; ``min_sigma_px`` and
     ``robust_sigmas``: the keypoint noise's floor and the up residuals' Cauchy
-    scale in standard errors, as the keypoint BA's options give them)."""
+    scale in standard errors, as the keypoint BA's options give them; ``tracks``:
+    the keypoint tracks as the model holds them, None to read them from the
+    database)."""
     registered = {
         rec.image(i).name: i for i in rec.reg_image_ids() if rec.image(i).has_pose
     }
@@ -110,7 +121,10 @@ def refine_with_gravity_inplace(
     cameras = {n: inputs.views.cameras[camera_of[n]] for n in names}
     measured = measure_gravity(image_dir, groups, cameras, persons, options)
     measured, disagree = agreeing_ups(rec, registered, measured, options.max_hint_deg)
-    noise = keypoint_noise_px(rec, inputs.database_path, min_sigma_px)
+    if tracks is None:
+        registered_ids = np.array(sorted(registered.values()), dtype=np.int64)
+        tracks = keypoint_tracks(inputs.database_path, registered_ids)
+    noise = keypoint_noise_px(rec, tracks, min_sigma_px)
     keys = sorted(measured)
     used = len(keys) >= 2 and noise is not None
     if used:
