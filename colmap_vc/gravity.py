@@ -84,6 +84,7 @@ class Gravity:
     num_segments: int  # segments supporting it
     num_images: int  # images pooled
     lines_px: FloatArray  # (num_segments, 4) x1 y1 x2 y2, pixels (COLMAP's centres)
+    people_up_cam: FloatArray | None = None  # (3,) the people's up, the search's hint
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -340,6 +341,7 @@ def measure_gravity(
         if not parts:
             continue
         hint = np.mean(hints, axis=0)
+        hint /= np.linalg.norm(hint)
         segments = Segments(
             ray1=np.concatenate([p.ray1 for p in parts]),
             ray2=np.concatenate([p.ray2 for p in parts]),
@@ -347,7 +349,7 @@ def measure_gravity(
         )
         found = vertical_direction(
             segments,
-            hint / np.linalg.norm(hint),
+            hint,
             camera.mean_focal_length(),
             options,
             repeats=len(parts),
@@ -366,6 +368,7 @@ def measure_gravity(
                 np.asarray(camera.img_from_cam(lines.ray1)),
                 np.asarray(camera.img_from_cam(lines.ray2)),
             ],
+            people_up_cam=hint,
         )
         logger.info(
             "gravity: %s: %d vertical segments in %d image(s), +-%.2f deg",

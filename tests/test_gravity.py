@@ -24,7 +24,7 @@ from colmap_vc.gravity import (
     people_up,
     vertical_direction,
 )
-from colmap_vc.mapping.up import agreeing_ups
+from colmap_vc.mapping.up import agreeing_ups, contradicted_cameras
 from colmap_vc.structs import PersonPrior
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
@@ -237,13 +237,14 @@ def test_up_priors_check_their_shapes() -> None:
         )
 
 
-def _gravity(up_cam: np.ndarray) -> Gravity:
+def _gravity(up_cam: np.ndarray, people_up_cam: np.ndarray | None = None) -> Gravity:
     return Gravity(
         up_cam=up_cam / np.linalg.norm(up_cam),
         sigma_rad=np.radians(0.3),
         num_segments=30,
         num_images=1,
         lines_px=np.zeros((0, 4)),
+        people_up_cam=up_cam if people_up_cam is None else people_up_cam,
     )
 
 
@@ -258,10 +259,12 @@ def test_an_up_that_disagrees_with_the_other_cameras_is_left_out(dome_scene) -> 
     measured = {n: _gravity(true_up[n]) for n in names}
     # One camera's vanishing point is a horizontal one (60 deg off).
     turn = Rotation.from_rotvec(np.radians(60) * np.array([1.0, 0, 0]))
-    measured[names[2]] = _gravity(turn.apply(true_up[names[2]]))
+    measured[names[2]] = _gravity(turn.apply(true_up[names[2]]), true_up[names[2]])
     kept, left_out = agreeing_ups(gt, registered, measured, 25.0)
     assert sorted(kept) == sorted(set(names) - {names[2]})
     assert list(left_out) == [names[2]] and left_out[names[2]] > 25.0
+    # Its people stand along the model's up: the lines are wrong, not the camera.
+    assert not contradicted_cameras(gt, registered, measured, kept, left_out, 25.0)
     # Two cameras that disagree: nothing says which is right.
     two = {n: measured[n] for n in names[1:3]}
     kept, left_out = agreeing_ups(gt, registered, two, 25.0)
@@ -271,6 +274,46 @@ def test_an_up_that_disagrees_with_the_other_cameras_is_left_out(dome_scene) -> 
         gt, registered, {n: _gravity(true_up[n]) for n in names}, 25.0
     )
     assert sorted(kept) == names and left_out == {}
+
+
+def test_a_camera_its_own_lines_and_people_contradict_leaves_the_model(
+    dome_scene,
+) -> None:
+    """A camera posed 40 deg off (a merged detection can do that): its vertical
+    lines and its people's up, both measured in its own image, agree with each
+    other and not with the model's up there, while the other cameras agree: the
+    camera, not its up, is wrong."""
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    registered = {im.name: i for i, im in gt.images.items()}
+    names = sorted(registered)
+    true_up = {
+        n: gt.image(registered[n]).cam_from_world().rotation.matrix() @ WORLD_UP
+        for n in names
+    }
+    measured = {n: _gravity(true_up[n]) for n in names}
+    image = gt.image(registered[names[2]])
+    T = image.cam_from_world().matrix()
+    turn = Rotation.from_rotvec(np.radians(40) * np.array([1.0, 0, 0])).as_matrix()
+    gt.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(turn @ T[:, :3]), turn @ T[:, 3]
+    )
+    kept, left_out = agreeing_ups(gt, registered, measured, 25.0)
+    assert list(left_out) == [names[2]]
+    found = contradicted_cameras(gt, registered, measured, kept, left_out, 25.0)
+    assert (
+        list(found) == [names[2]]
+        and "40 deg from its vertical lines" in (found[names[2]])
+    )
+    # Its people disagree with its lines too: nothing says the camera is wrong.
+    tilted = {
+        **measured,
+        names[2]: _gravity(true_up[names[2]], turn @ true_up[names[2]]),
+    }
+    assert not contradicted_cameras(gt, registered, tilted, kept, left_out, 25.0)
+    # Two measured cameras: no consensus on the world's up.
+    two = {n: measured[n] for n in names[1:3]}
+    kept2, left2 = agreeing_ups(gt, registered, two, 25.0)
+    assert not contradicted_cameras(gt, registered, two, kept2, left2, 25.0)
 
 
 _LARGE_UP_PROBLEM = """

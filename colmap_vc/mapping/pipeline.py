@@ -173,6 +173,7 @@ def _map_copy(
             min_sigma_px=kba_options.min_sigma_px,
             robust_sigmas=kba_options.robust_sigmas,
         )
+        left_out.update(gravity.cameras_left_out)
     elif options.gravity:
         logger.info("gravity: needs priors (the people's up): model unchanged")
     timings["gravity"] = time.perf_counter() - lap

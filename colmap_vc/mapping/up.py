@@ -53,6 +53,7 @@ class GravityResult:
     residual_deg: dict[str, float]  # angle between measured and model up, after
     used: bool  # False: fewer than two cameras measured, the model is unchanged
     left_out: dict[str, float]  # image name -> its up's angle to the others' (deg)
+    cameras_left_out: dict[str, str]  # image name -> why it left the model
 
 
 def keypoint_noise_px(
@@ -120,7 +121,15 @@ def refine_with_gravity_inplace(
     )
     cameras = {n: inputs.views.cameras[camera_of[n]] for n in names}
     measured = measure_gravity(image_dir, groups, cameras, persons, options)
+    every = measured
     measured, disagree = agreeing_ups(rec, registered, measured, options.max_hint_deg)
+    contradicted = contradicted_cameras(
+        rec, registered, every, measured, disagree, options.max_hint_deg
+    )
+    for name, reason in contradicted.items():
+        logger.warning("gravity: %s %s", name, reason)
+        rec.deregister_frame(rec.image(registered[name]).frame_id)
+        del registered[name]
     if tracks is None:
         registered_ids = np.array(sorted(registered.values()), dtype=np.int64)
         tracks = keypoint_tracks(inputs.database_path, registered_ids)
@@ -152,6 +161,7 @@ def refine_with_gravity_inplace(
         residual_deg=residual,
         used=used,
         left_out=disagree,
+        cameras_left_out=contradicted,
     )
 
 
@@ -182,6 +192,54 @@ def agreeing_ups(
     for k, a in left_out.items():
         logger.info("gravity: %s left out: its up is %.1f deg from the others'", k, a)
     return {k: measured[k] for k in sorted(kept)}, left_out
+
+
+def contradicted_cameras(
+    rec: pycolmap.Reconstruction,
+    registered: dict[str, int],
+    measured: dict[str, Gravity],
+    agreeing: dict[str, Gravity],
+    disagree: dict[str, float],
+    max_deg: float,
+) -> dict[str, str]:
+    """The cameras whose own image contradicts their pose: name -> reason.
+
+    A measured up that disagrees with the others' (:func:`agreeing_ups`) is a
+    wrong vanishing point, or a wrong camera. When two or more other cameras
+    agree on the world's up, and the model's up in that camera is more than
+    ``max_deg`` both from its vertical lines and from its own people's up (the
+    hint the lines were searched near, from its meshes, independent of the
+    model), two cues of the image agree with each other and not with the
+    pose: the camera is what is wrong (pose2sim_multi t090: a detection that
+    merged the two people put cam03 55 deg off, its lines 38 deg away). A wrong
+    camera is worse than none, so it leaves the model.
+    """
+    if len(agreeing) < 2:
+        return {}  # no consensus on the world's up
+    world = [
+        rec.image(registered[k]).cam_from_world().rotation.matrix().T
+        @ agreeing[k].up_cam
+        for k in sorted(agreeing)
+    ]
+    up = np.mean(world, axis=0)
+    up /= np.linalg.norm(up)
+    out: dict[str, str] = {}
+    for name in sorted(disagree):  # loop over the disagreeing cameras
+        g = measured[name]
+        if g.people_up_cam is None:
+            continue
+        model_up = rec.image(registered[name]).cam_from_world().rotation.matrix() @ up
+        to_lines, to_people = (
+            float(np.degrees(np.arccos(np.clip(model_up @ v, -1.0, 1.0))))
+            for v in (g.up_cam, g.people_up_cam)
+        )
+        if min(to_lines, to_people) > max_deg:
+            out[name] = (
+                f"left out: its pose contradicts its own image (the up the other "
+                f"cameras agree on is {to_lines:.0f} deg from its vertical lines and "
+                f"{to_people:.0f} deg from its people's up, more than {max_deg:g})"
+            )
+    return out
 
 
 def _residuals_deg(
