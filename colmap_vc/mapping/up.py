@@ -5,11 +5,13 @@ vertical lines (:mod:`colmap_vc.gravity`; a static camera pools all its images),
 and the model is bundle-adjusted once more with every camera's up tied to one world
 up (:mod:`colmap_vc.gba.up`). The angles are weighed against the keypoints' pixel
 noise, estimated from the model's own residuals with the error each person's
-keypoints share in an image (:func:`keypoint_noise_px`). Weighed against the
-keypoints' spread alone (4.7 px on pose2sim_single, against 20 px with the shared
-error), the up directions moved the static cameras half as far: median pair error
-2.28 deg against 1.11. What was measured and how well each camera agrees with it
-afterwards goes to ``gravity.json`` beside the model.
+keypoints share in an image (:func:`keypoint_noise_px`; 12.6 px on pose2sim_single's
+static cameras, 4.7 px for the keypoints' spread alone). Weighed against the spread
+alone, the up directions moved those cameras half as far (median pair error 2.28
+deg against 1.11, when the step came, commit ec3cd4f). A camera whose own image
+(its vertical lines and its people's up) contradicts the pose the people gave it
+leaves the model (:func:`contradicted_cameras`). What was measured and how well
+each camera agrees with it afterwards goes to ``gravity.json`` beside the model.
 """
 
 from __future__ import annotations
@@ -40,8 +42,8 @@ logger = logging.getLogger(__name__)
 
 GRAVITY_FILE = "gravity.json"
 """Written next to the model: each camera's measured up, its standard error, the
-vertical lines it rests on (pixels; a static camera's from all its images) and how
-far the final model's up is from it."""
+vertical lines it rests on (pixels; a static camera's from all its images), how
+far the final model's up is from it, and the cameras the step left out, why."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -282,6 +284,7 @@ def write_gravity(model_dir: Path, result: GravityResult) -> Path:
             for k, g in sorted(result.measured.items())
         },
         "left_out_deg": dict(sorted(result.left_out.items())),
+        "cameras_left_out": dict(sorted(result.cameras_left_out.items())),
     }
     path.write_text(json.dumps(payload, indent=2) + "\n")
     return path
