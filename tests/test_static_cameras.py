@@ -11,6 +11,7 @@ import pytest
 from conftest import extract_database
 
 from colmap_vc import cli, database
+from colmap_vc.mapping.outputs import static_members_left_out
 from colmap_vc.priors import read_priors, write_priors
 from colmap_vc.static_cameras import merge_priors, parse_static_cameras
 from colmap_vc.structs import ImagePrior, ScenePriors
@@ -31,6 +32,15 @@ def test_cameras_instants_and_unmatched_images() -> None:
     assert static.members("cam02_t010.jpg") == ["cam02_t010.jpg", "cam02_t030.jpg"]
     assert static.representative_of("cam03_t030.jpg") == "cam03_t010.jpg"
     assert static.representative_of("x.jpg") == "x.jpg"
+
+
+def test_a_left_out_static_camera_gives_its_reason_to_every_image() -> None:
+    static = parse_static_cameras(r"(cam\d+)_", NAMES)
+    why = "left out: its pose contradicts the body meshes"
+    reasons = static_members_left_out({"cam02_t010.jpg": why, "x.jpg": "?"}, static)
+    assert reasons == {
+        "cam02_t030.jpg": f"as cam02_t010.jpg (the same static camera): {why}"
+    }
 
 
 @pytest.mark.parametrize(

@@ -111,6 +111,21 @@ def why_unregistered(
     return reasons
 
 
+def static_members_left_out(
+    left_out: dict[str, str], static: StaticCameras
+) -> dict[str, str]:
+    """Why each image of a left-out static camera is missing: the reason its
+    representative (the view that stands for every instant) was left out."""
+    out = {}
+    for rep, why in sorted(left_out.items()):
+        if rep not in static.camera_of:
+            continue  # an image of its own
+        for name in static.members(rep):
+            if name != rep:
+                out[name] = f"as {rep} (the same static camera): {why}"
+    return out
+
+
 def add_static_members_inplace(
     rec: pycolmap.Reconstruction, static: StaticCameras, views: database.DatabaseViews
 ) -> None:

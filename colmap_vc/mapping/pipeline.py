@@ -37,6 +37,7 @@ from .options import MappingOptions, MappingSummary
 from .outputs import (
     add_static_members_inplace,
     number_models,
+    static_members_left_out,
     why_unregistered,
     write_run_options,
 )
@@ -195,6 +196,8 @@ def _map_copy(
         write_gravity(output_dir / str(best_key), gravity)
     timings["scale_write"] = time.perf_counter() - lap
     reasons = {**why_unregistered(database_path, best), **left_out}
+    if inputs.static is not None:
+        reasons.update(static_members_left_out(left_out, inputs.static))
     if best is None:
         why = "; ".join(f"{n}: {r}" for n, r in list(reasons.items())[:5])
         raise RuntimeError(
