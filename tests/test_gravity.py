@@ -3,6 +3,7 @@ on it."""
 
 from __future__ import annotations
 
+import dataclasses
 import os
 import subprocess
 import sys
@@ -24,7 +25,11 @@ from colmap_vc.gravity import (
     people_up,
     vertical_direction,
 )
-from colmap_vc.mapping.up import agreeing_ups, contradicted_cameras
+from colmap_vc.mapping.up import (
+    absorbed_noise_px,
+    agreeing_ups,
+    contradicted_cameras,
+)
 from colmap_vc.structs import PersonPrior
 
 WORLD_UP = np.array([0.0, 0.0, 1.0])
@@ -314,6 +319,63 @@ def test_a_camera_its_own_lines_and_people_contradict_leaves_the_model(
     two = {n: measured[n] for n in names[1:3]}
     kept2, left2 = agreeing_ups(gt, registered, two, 25.0)
     assert not contradicted_cameras(gt, registered, two, kept2, left2, 25.0)
+
+
+def _model_with_tilts(dome_scene, tilt_deg: float, rng) -> pycolmap.Reconstruction:
+    """The dome's cameras with 60 points seen by all of them (1 px of noise), each
+    camera then tilted by ``tilt_deg`` about a random axis across its up."""
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    points = rng.normal(0, 0.5, (60, 3)) * [1, 2, 1] + [0, -0.9, 0]
+    ids = sorted(rec.images)
+    for image_id in ids:  # loop over cameras
+        image = rec.image(image_id)
+        T = image.cam_from_world().matrix()
+        uv = rec.camera(image.camera_id).img_from_cam(points @ T[:, :3].T + T[:, 3])
+        uv = np.asarray(uv) + rng.normal(0, 1.0, uv.shape)
+        image.points2D = pycolmap.Point2DList([pycolmap.Point2D(p) for p in uv])
+    for k, X in enumerate(points):
+        track = pycolmap.Track()
+        for image_id in ids:
+            track.add_element(image_id, k)
+        rec.add_point3D(X, track)
+    for image_id in ids:  # loop over cameras
+        image = rec.image(image_id)
+        T = image.cam_from_world().matrix()
+        up = T[:, :3] @ WORLD_UP
+        axis = np.cross(up, rng.normal(size=3))
+        turn = Rotation.from_rotvec(np.radians(tilt_deg) * axis / np.linalg.norm(axis))
+        R = turn.as_matrix()
+        rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(R @ T[:, :3]), R @ T[:, 3]
+        )
+    return rec
+
+
+def test_the_tilt_error_the_residuals_cannot_see_is_read_from_the_ups(
+    dome_scene,
+) -> None:
+    """Cameras tilted by an error their keypoints do not show (the ups, exact, do):
+    no tilt, no extra noise; twice the tilt, twice the noise; under three ups,
+    nothing to say."""
+    found = []
+    for tilt in (0.0, 1.0, 2.0):
+        rec = _model_with_tilts(dome_scene, tilt, np.random.default_rng(3))
+        registered = {im.name: i for i, im in rec.images.items()}
+        gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+        measured = {
+            n: dataclasses.replace(
+                _gravity(gt.image(i).cam_from_world().rotation.matrix() @ WORLD_UP),
+                sigma_rad=1e-4,
+            )
+            for n, i in registered.items()
+        }
+        # A loss far above the residuals: the covariance at the tilted poses is
+        # the one at the adjusted poses (where the step runs, residuals are small).
+        found.append(absorbed_noise_px(rec, registered, measured, 1e3))
+    assert found[0] == 0.0
+    assert found[1] > 5.0 and found[2] / found[1] == pytest.approx(2.0, rel=0.1), found
+    two = dict(list(measured.items())[:2])
+    assert absorbed_noise_px(rec, registered, two, 1e3) is None
 
 
 _LARGE_UP_PROBLEM = """

@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..gba.ceres import PeopleNoise, bundle_adjust_inplace
+from ..gba.ceres import PeopleNoise, ba_options, bundle_adjust_inplace
 from ..gba.noise import cluster_noise
 from ..gba.up import UpPriors
 from ..gravity import Gravity, GravityOptions, measure_gravity
@@ -136,6 +136,16 @@ def refine_with_gravity_inplace(
         registered_ids = np.array(sorted(registered.values()), dtype=np.int64)
         tracks = keypoint_tracks(inputs.database_path, registered_ids)
     noise = keypoint_noise_px(rec, tracks, min_sigma_px)
+    absorbed = absorbed_noise_px(rec, registered, measured, loss_scale_px)
+    if noise is not None and absorbed is not None and absorbed > noise:
+        logger.info(
+            "gravity: the cameras' tilts disagree with their ups as if the keypoints "
+            "were %.1f px off, not %.1f px: weighed at %.1f px",
+            absorbed,
+            noise,
+            absorbed,
+        )
+        noise = absorbed
     keys = sorted(measured)
     used = len(keys) >= 2 and noise is not None
     if used:
@@ -194,6 +204,66 @@ def agreeing_ups(
     for k, a in left_out.items():
         logger.info("gravity: %s left out: its up is %.1f deg from the others'", k, a)
     return {k: measured[k] for k in sorted(kept)}, left_out
+
+
+def absorbed_noise_px(
+    rec: pycolmap.Reconstruction,
+    registered: dict[str, int],
+    measured: dict[str, Gravity],
+    loss_scale_px: float,
+) -> float | None:
+    """The keypoint noise the cameras' tilts show, pixels: what the residuals
+    cannot (None with fewer than three measured ups, or without a covariance).
+
+    The residuals see the keypoints' spread and the error a person's keypoints
+    share in an image (:func:`keypoint_noise_px`), but not an error the poses
+    absorb: landmark biases a camera repeats at every instant move the camera, not
+    the residuals. The measured ups see it. Before they are used, camera i's up in
+    the model is d_i from its measurement (the world's up: their mean); per axis,
+    E[sum d_i^2] = 2 (n - 1) (s^2 + sigma^2), with s the tilt error the keypoints
+    leave and sigma the ups' standard errors. The model's covariance (COLMAP's, at
+    one pixel of keypoint noise, the tilt's share: the rotation's covariance
+    across the camera's up, halved per camera since the gauge camera's error is
+    in every other) gives c, the tilt variance per pixel^2; s^2 / c is the noise
+    that tilt error means. On pose2sim_single's static cameras: s = 0.72 deg,
+    36 px against 12.6 px from the residuals; pose2sim_multi's tilts agree with
+    their ups within the ups' own error (s = 0).
+    """
+    keys = sorted(measured)
+    if len(keys) < 3:
+        return None
+    rotations = {
+        k: rec.image(registered[k]).cam_from_world().rotation.matrix() for k in keys
+    }
+    world = np.array([rotations[k].T @ measured[k].up_cam for k in keys])
+    up = world.mean(axis=0)
+    up /= np.linalg.norm(up)
+    d2 = np.arccos(np.clip(world @ up, -1.0, 1.0)) ** 2
+    sigma2 = np.array([measured[k].sigma_rad ** 2 for k in keys])
+    s2 = d2.sum() / (2 * (len(keys) - 1)) - sigma2.mean()
+    if s2 <= 0:
+        return 0.0
+    config = pycolmap.BundleAdjustmentConfig()
+    for image_id in sorted(rec.reg_image_ids()):
+        config.add_image(image_id)
+    config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
+    adjuster = pycolmap.create_default_ceres_bundle_adjuster(
+        ba_options(loss_scale_px), config, rec
+    )
+    cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, adjuster)
+    if cov is None:
+        return None
+    per_px2 = []
+    for k in keys:  # loop over the measured cameras
+        C = cov.get_cam_cov_from_world(registered[k])
+        if C is None or C.shape[0] < 3:
+            continue  # the gauge camera
+        u = rotations[k] @ up
+        across = np.eye(3) - np.outer(u, u)
+        per_px2.append(np.trace(across @ C[:3, :3] @ across) / 4)
+    if not per_px2:
+        return None
+    return float(np.sqrt(s2 / np.median(per_px2)))
 
 
 def contradicted_cameras(
