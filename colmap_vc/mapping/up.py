@@ -8,7 +8,9 @@ noise, estimated from the model's own residuals with the error each person's
 keypoints share in an image (:func:`keypoint_noise_px`; 12.6 px on pose2sim_single's
 static cameras, 4.7 px for the keypoints' spread alone). Weighed against the spread
 alone, the up directions moved those cameras half as far (median pair error 2.28
-deg against 1.11, when the step came, commit ec3cd4f). A camera whose own image
+deg against 1.11, when the step came, commit ec3cd4f). The residuals miss what
+the poses absorb, so the noise is at least what the cameras' tilts show against
+their ups (:func:`absorbed_noise_px`: 31 px there). A camera whose own image
 (its vertical lines and its people's up) contradicts the pose the people gave it
 leaves the model (:func:`contradicted_cameras`). What was measured and how well
 each camera agrees with it afterwards goes to ``gravity.json`` beside the model.
@@ -226,7 +228,7 @@ def absorbed_noise_px(
     across the camera's up, halved per camera since the gauge camera's error is
     in every other) gives c, the tilt variance per pixel^2; s^2 / c is the noise
     that tilt error means. On pose2sim_single's static cameras: s = 0.72 deg,
-    36 px against 12.6 px from the residuals; pose2sim_multi's tilts agree with
+    31 px against 12.6 px from the residuals; pose2sim_multi's tilts agree with
     their ups within the ups' own error (s = 0).
     """
     keys = sorted(measured)
