@@ -376,6 +376,12 @@ def test_the_tilt_error_the_residuals_cannot_see_is_read_from_the_ups(
     assert found[1] > 5.0 and found[2] / found[1] == pytest.approx(2.0, rel=0.1), found
     two = dict(list(measured.items())[:2])
     assert absorbed_noise_px(rec, registered, two, 1e3) is None
+    # A camera the up check left out (deregistered, no pose) is not read: the
+    # others' estimate stands (it raised "Frame does not have a valid pose").
+    name = max(registered)
+    rec.deregister_frame(rec.image(registered.pop(name)).frame_id)
+    del measured[name]
+    assert absorbed_noise_px(rec, registered, measured, 1e3) > 5.0
 
 
 _LARGE_UP_PROBLEM = """

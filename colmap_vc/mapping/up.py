@@ -245,14 +245,20 @@ def absorbed_noise_px(
     s2 = d2.sum() / (2 * (len(keys) - 1)) - sigma2.mean()
     if s2 <= 0:
         return 0.0
+    # COLMAP's covariance reads every frame's pose: a camera left out before
+    # (contradicted_cameras) has none, so the estimate runs on a copy without it.
+    posed = pycolmap.Reconstruction(rec)
+    posed.tear_down()
     config = pycolmap.BundleAdjustmentConfig()
-    for image_id in sorted(rec.reg_image_ids()):
+    for image_id in sorted(posed.reg_image_ids()):
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
     adjuster = pycolmap.create_default_ceres_bundle_adjuster(
-        ba_options(loss_scale_px), config, rec
+        ba_options(loss_scale_px), config, posed
     )
-    cov = pycolmap.estimate_ba_covariance(pycolmap.BACovarianceOptions(), rec, adjuster)
+    cov = pycolmap.estimate_ba_covariance(
+        pycolmap.BACovarianceOptions(), posed, adjuster
+    )
     if cov is None:
         return None
     per_px2 = []
