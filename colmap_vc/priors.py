@@ -385,7 +385,11 @@ def _parse_doc(
             listed = ", ".join(map(repr, strangers[:5]))
             more = ", ..." if len(strangers) > 5 else ""
             problem = f"{len(strangers)} image(s) not in the database: {listed}{more}"
-            raise PriorsError(json_path, "images", problem)
+            if len(strangers) == len(images_doc):  # another folder, or renamed
+                raise PriorsError(json_path, "images", problem)
+            # Priors of a whole folder, a database of some of its images.
+            logger.warning("%s: images: ignoring %s", json_path, problem)
+            images_doc = {k: v for k, v in images_doc.items() if k in known}
     templates = _parse_templates(js, doc, open_npz)
     sizes = {k: (int(w), int(h)) for k, (w, h) in (image_sizes or {}).items()}
     uses: dict[str, tuple[int, str]] = {}
@@ -434,8 +438,11 @@ def read_priors(
 
     Args:
         path: The priors directory, or its ``priors.json``.
-        known_image_names: The database's image names; priors of other names are an
-            error. Database images without priors are fine (the caller skips them).
+        known_image_names: The database's image names; priors of other names are
+            ignored with a warning (priors of a folder, a database of some of its
+            images), an error when no name is known (another folder, renamed
+            images). Database images without priors are fine (the caller skips
+            them).
         image_sizes: ``(width, height)`` per image name, e.g. from the database
             cameras; enables the mask-shape and pixels-inside-the-image checks.
 

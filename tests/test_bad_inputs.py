@@ -247,13 +247,11 @@ CASES = [
         setup=_priors_json(_first_image_file),
     ),
     Case(
-        "augment: priors image not in database",
+        "augment: priors of no database image",
         _augment,
         "not in the database",
         setup=_priors_json(
-            lambda d: d["images"].update(
-                {"ghost.jpg": next(iter(d["images"].values()))}
-            )
+            lambda d: d.update(images={f"ghost/{k}": v for k, v in d["images"].items()})
         ),
     ),
     Case(

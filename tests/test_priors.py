@@ -150,13 +150,27 @@ def test_database_images_without_priors_are_fine(priors_dir: Path) -> None:
     assert set(loaded.images) == set(SIZES)
 
 
-def test_unknown_images_are_listed(priors_dir: Path) -> None:
-    with pytest.raises(PriorsError) as info:
-        read_priors(priors_dir, known_image_names=["cam0.jpg"])
-    message = str(info.value)
-    assert "priors.json: images: 2 image(s) not in the database" in message
+def test_priors_of_images_the_database_lacks_are_ignored_and_listed(
+    priors_dir: Path, caplog: pytest.LogCaptureFixture
+) -> None:
+    """Priors of a whole folder, a database of some of its images: the others are
+    skipped, and the warning names them."""
+    with caplog.at_level(logging.WARNING, logger="colmap_vc.priors"):
+        loaded = read_priors(priors_dir, known_image_names=["cam0.jpg"])
+    assert set(loaded.images) == {"cam0.jpg"}
+    message = caplog.text
+    assert "priors.json: images: ignoring 2 image(s) not in the database" in message
     assert "'cams/a.jpg'" in message
     assert "'empty.jpg'" in message
+
+
+def test_priors_of_no_database_image_are_an_error(priors_dir: Path) -> None:
+    """Not one name in common (another folder, renamed images): refused."""
+    with pytest.raises(PriorsError) as info:
+        read_priors(priors_dir, known_image_names=["other.jpg"])
+    message = str(info.value)
+    assert "priors.json: images: 3 image(s) not in the database" in message
+    assert "'cam0.jpg'" in message
 
 
 def test_at_most_five_unknown_images_are_listed(
