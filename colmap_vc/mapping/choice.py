@@ -37,7 +37,7 @@ def map_images(
     db, priors = inputs.database_path, inputs.priors
     if len(inputs.mapped) == 2 and options.mapper is Mapper.AUTO:
         rec = strategies.two_view_initialised(
-            db, image_dir, output_dir / "0", options, priors
+            db, image_dir, output_dir / "0", options, priors, inputs.mapped
         )
         models: Models = {} if rec is None else {0: rec}
     elif options.mapper is Mapper.MESH:

@@ -155,8 +155,14 @@ def two_view_initialised(
     output_dir: Path,
     options: MappingOptions,
     priors: ScenePriors | None = None,
+    image_names: Sequence[str] | None = None,
 ) -> pycolmap.Reconstruction | None:
     """A two-image model from the pair's verified two-view geometry, triangulated.
+
+    ``image_names``: the two images to map, when the database holds more (static
+    cameras: one view per camera; the other instants' images of the same camera
+    share its background, and their SIFT pair would win on inliers with no
+    baseline at all).
 
     COLMAP's incremental mapper discards a model made of its initial pair only, so a
     two-image scene (the paper's two-frame task) is built here: camera 1 at the
@@ -166,7 +172,16 @@ def two_view_initialised(
     """
     views = database.read_views(database_path)
     geometries = database.read_two_view_geometries(database_path, include_vc=True)
-    usable = {p: row for p, row in geometries.items() if len(row.inlier_matches) >= 5}
+    wanted = set(
+        views.image_ids.tolist()
+        if image_names is None
+        else views.image_ids[np.isin(views.image_names, list(image_names))].tolist()
+    )
+    usable = {
+        p: row
+        for p, row in geometries.items()
+        if len(row.inlier_matches) >= 5 and {int(p[0]), int(p[1])} <= wanted
+    }
     if not usable:
         return None
     (id1, id2), row = max(usable.items(), key=lambda kv: len(kv[1].inlier_matches))
