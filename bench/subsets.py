@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import argparse
 import itertools
+import json
 import logging
 import shutil
 import time
@@ -137,8 +138,19 @@ def main() -> None:
     parser.add_argument(
         "--groups", nargs="+", default=["one instant", "static cameras"]
     )
+    parser.add_argument(
+        "--table-only",
+        action="store_true",
+        help="rewrite the results.md section from bench/out/subsets.json",
+    )
     args = parser.parse_args()
     setup_logging()
+    if args.table_only:
+        saved = json.loads((OUT / "subsets.json").read_text())
+        write_table(
+            saved["results"], saved["machine"]["commit"], saved.get("elapsed_s", 0)
+        )
+        return
     t_start = time.perf_counter()
     results: dict[str, dict[str, dict]] = {}
     for ds in args.datasets:
@@ -158,33 +170,55 @@ def main() -> None:
                     )
                 results[key][name] = run_one(ds, group, name, images, priors)
     elapsed = time.perf_counter() - t_start
-    write_json("subsets.json", {"machine": machine(), "results": results})
+    write_json(
+        "subsets.json",
+        {"machine": machine(), "results": results, "elapsed_s": elapsed},
+    )
+    write_table(results, machine()["commit"], elapsed)
+
+
+def _rows(results: dict[str, dict[str, dict]]) -> list[tuple[str, str, list[dict]]]:
+    """(data, subsets, runs) per table row: one instant split by camera count."""
+    rows = []
+    for key, group_runs in results.items():
+        ds, group = key.split("/")
+        if group == "one instant":
+            for k in (2, 3):
+                runs_k = [r for r in group_runs.values() if len(r["images"]) == k]
+                rows.append((ds, f"one instant, {k} cameras", runs_k))
+        else:
+            rows.append((ds, group, list(group_runs.values())))
+    return rows
+
+
+def write_table(
+    results: dict[str, dict[str, dict]], commit: str, elapsed: float
+) -> None:
     lines = [
         "| data | subsets | runs | `map` finished | registered | pairs "
         "| AUC@15 | AUC@30 | AUC@45 | median pair error (deg) |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for key, group_runs in results.items():
-        ds, group = key.split("/")
-        errors = [e for r in group_runs.values() for e in r["pair_errors_deg"]]
+    for ds, group, group_runs in _rows(results):
+        errors = [e for r in group_runs for e in r["pair_errors_deg"]]
         auc = pose_auc(errors, THRESHOLDS_DEG)
         lines.append(
             f"| pose2sim_{ds} | {group} | {len(group_runs)} "
-            f"| {sum(r['map_exit'] == 0 for r in group_runs.values())} "
-            f"| {sum(r['registered'] for r in group_runs.values())}/"
-            f"{sum(len(r['images']) for r in group_runs.values())} "
+            f"| {sum(r['map_exit'] == 0 for r in group_runs)} "
+            f"| {sum(r['registered'] for r in group_runs)}/"
+            f"{sum(len(r['images']) for r in group_runs)} "
             f"| {len(errors)} | {100 * auc[0]:.1f} | {100 * auc[1]:.1f} "
             f"| {100 * auc[2]:.1f} | {np.median(errors):.2f} |"
         )
     lines += [
         "",
-        f"Measured at commit {machine()['commit']} by `.venv/bin/python "
-        f"bench/subsets.py` ({elapsed / 60:.0f} min; per run in "
-        "`bench/out/subsets.json`). *one instant*: every 2- and 3-camera subset "
-        "of each of the five instants; *static cameras*: every camera pair over "
-        "two instants, every 3-camera subset over five, one capture with uneven "
-        "instants per camera; pairs of one instant against the calibration, "
-        "pooled over runs; a pair with an unregistered image counts as 180 deg.",
+        f"Measured at commit {commit} by `.venv/bin/python bench/subsets.py` "
+        f"({elapsed / 60:.0f} min; per run in `bench/out/subsets.json`). "
+        "*one instant*: every 2- and 3-camera subset of each of the five instants; "
+        "*static cameras*: every camera pair over two instants, every 3-camera "
+        "subset over five, one capture with uneven instants per camera; pairs of "
+        "one instant against the calibration, pooled over runs; a pair with an "
+        "unregistered image counts as 180 deg.",
     ]
     replace_section(
         DOCS / "results.md",
