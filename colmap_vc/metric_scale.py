@@ -64,8 +64,9 @@ def estimate_metric_scale(
 
     ``priors`` are keyed by the database's image names (for static cameras: the
     merged priors of the representative images). Keypoint tracks seen by fewer than
-    ``min_track_length`` registered images (2 in a two-image model) are too poorly
-    triangulated to use. None when no keypoint of a prior person is triangulated.
+    ``min_track_length`` registered images (2 in a two-image model, or where no
+    track is longer) are too poorly triangulated to use. None when no keypoint of
+    a prior person is triangulated.
     """
     database_path = Path(database_path)
     views = database.read_views(database_path)
@@ -79,8 +80,11 @@ def estimate_metric_scale(
     offset = int(run.get("matching", {}).get("num_samples", 0)) if run else 0
     if tracks.num_tracks == 0 or tracks.keys is None or offset <= 0:
         return None
-    min_track_length = min(min_track_length, max(len(registered), 2))
     X, counts = triangulate_tracks(rec, tracks)
+    # Static cameras with uneven instants: three cameras, no instant seen by more
+    # than two; the longest tracks there are, two views at least, are used.
+    longest = int(counts.max()) if len(counts) else 0
+    min_track_length = min(min_track_length, max(len(registered), 2), max(longest, 2))
     good = (counts[tracks.track] >= min_track_length) & np.isfinite(
         X[tracks.track]
     ).all(axis=1)

@@ -170,18 +170,18 @@ def test_augmented_database_maps_with_pycolmap(dome_scene, tmp_path):
     assert max(m.num_reg_images() for m in models.values()) == 6
 
 
-def test_priors_for_unknown_images_fail_and_leave_the_database(dome_scene, tmp_path):
+def test_priors_of_no_database_image_fail_and_leave_the_database(dome_scene, tmp_path):
+    """Priors whose images are all unknown (another folder, renamed images) are
+    refused before anything is written; priors of more images than the database
+    holds are fine (tests/test_priors.py)."""
     db = tmp_path / "database.db"
     shutil.copyfile(dome_scene / "database.db", db)
     before = _checksums(db)
     priors = read_priors(dome_scene / "priors")
-    name = sorted(priors.images)[0]
     bad = ScenePriors(
         images={
-            **priors.images,
-            "ghost.jpg": dataclasses.replace(
-                priors.images[name], image_name="ghost.jpg"
-            ),
+            f"ghost/{n}": dataclasses.replace(p, image_name=f"ghost/{n}")
+            for n, p in priors.images.items()
         }
     )
     write_priors(
@@ -189,7 +189,7 @@ def test_priors_for_unknown_images_fail_and_leave_the_database(dome_scene, tmp_p
         tmp_path / "priors",
         templates={"anny": next(iter(priors.images.values())).persons[0].faces},
     )
-    with pytest.raises(PriorsError, match=r"ghost.jpg"):
+    with pytest.raises(PriorsError, match=r"ghost/"):
         augment.run(
             db, tmp_path / "priors", augment.AugmentOptions(show_progress=False)
         )

@@ -11,6 +11,7 @@ import pytest
 from conftest import extract_database
 
 from colmap_vc import cli, database
+from colmap_vc.evaluation import camera_distance_ratio
 from colmap_vc.mapping.outputs import static_members_left_out
 from colmap_vc.priors import read_priors, write_priors
 from colmap_vc.static_cameras import merge_priors, parse_static_cameras
@@ -103,14 +104,21 @@ def test_cli_refuses_a_bad_expression_and_leaves_the_database(
 
 
 def _static_copies(
-    dome_scene: Path, tmp_path: Path, names: list[str], background: bool = False
+    dome_scene: Path,
+    tmp_path: Path,
+    names: list[str],
+    background: bool = False,
+    drop: tuple[str, ...] = (),
+    instants: tuple[str, ...] = ("_t2",),
 ) -> tuple[Path, Path, list[str]]:
-    """The dome images ``names`` as two instants of static cameras: each picture
-    again under a second instant name (the people did not move), a database of
-    both with the known intrinsics, anonymous priors, ``augment --static-cameras``.
+    """The dome images ``names`` as instants of static cameras: each picture
+    again under each name suffix of ``instants`` (the people did not move), a
+    database of all with the known intrinsics, anonymous priors, ``augment
+    --static-cameras``.
     ``background``: a textured band along each camera's top edge, the same at
     both instants (a static camera's room: many SIFT matches between its own
-    instants, none with the other cameras).
+    instants, none with the other cameras). ``drop``: images left out of the
+    database (a camera that missed an instant).
     -> (database, image folder, every image name)."""
     import cv2
 
@@ -127,21 +135,29 @@ def _static_copies(
             blocks = rng.integers(0, 256, (band // 4, img.shape[1] // 4, 3))
             img[:band] = np.kron(blocks, np.ones((4, 4, 1)))[:band, : img.shape[1]]
             cv2.imwrite(str(images / n), img)
-        shutil.copyfile(images / n, images / n.replace(".jpg", "_t2.jpg"))
+        for t in instants:
+            shutil.copyfile(images / n, images / n.replace(".jpg", f"{t}.jpg"))
     db = tmp_path / "database.db"
     camera_of = {
         n: views.cameras[int(c)]
         for n, c in zip(views.image_names, views.camera_ids, strict=True)
     }
-    all_names = sorted([*names, *(n.replace(".jpg", "_t2.jpg") for n in names)])
-    cameras = {n: camera_of[n.replace("_t2", "")] for n in all_names}
+    all_names = sorted(
+        {n.replace(".jpg", f"{t}.jpg") for n in names for t in ("", *instants)}
+        - set(drop)
+    )
+    cameras = {
+        n: camera_of[n[: n.index("_t")] + ".jpg" if "_t" in n else n] for n in all_names
+    }
     extract_database(images, all_names, cameras, db)
     anonymous = {
         n: ImagePrior(
             image_name=n,
             persons=tuple(
                 dataclasses.replace(p, person_id=None)
-                for p in priors.images[n.replace("_t2", "")].persons
+                for p in priors.images[
+                    n[: n.index("_t")] + ".jpg" if "_t" in n else n
+                ].persons
             ),
         )
         for n in all_names
@@ -198,3 +214,24 @@ def test_two_static_cameras_are_mapped_from_their_own_pair(
     rel_gt = truth[b][:, :3] @ truth[a][:, :3].T
     cos = np.clip((np.trace(rel @ rel_gt.T) - 1) / 2, -1.0, 1.0)
     assert np.degrees(np.arccos(cos)) < 20.0  # two views of one instant: ~11
+
+
+def test_uneven_instants_are_scaled_to_metres(dome_scene: Path, tmp_path: Path) -> None:
+    """Three static cameras, each instant seen by two of them (a and b, then b
+    and c, then a and c): every keypoint track has two views, and the model is
+    still scaled from the people (it was left unscaled: no track of three)."""
+    import pycolmap
+
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    truth = {im.name: im.cam_from_world().matrix() for im in gt.images.values()}
+    a, b, c = sorted(truth)[:3]
+    drop = (c, a.replace(".jpg", "_t2.jpg"), b.replace(".jpg", "_t3.jpg"))
+    db, images, all_names = _static_copies(
+        dome_scene, tmp_path, [a, b, c], drop=drop, instants=("_t2", "_t3")
+    )
+    poses = _map_poses(db, images, tmp_path / "sparse")
+    assert sorted(poses) == all_names
+    assert (tmp_path / "sparse" / "0" / "metric_scale.json").exists()
+    for t in ("_t2", "_t3"):  # the same camera at every instant
+        truth.update({n.replace(".jpg", f"{t}.jpg"): truth[n] for n in (a, b, c)})
+    assert camera_distance_ratio(poses, truth) == pytest.approx(1.0, abs=0.15)
