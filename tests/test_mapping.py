@@ -95,6 +95,19 @@ def test_no_model_raises_with_the_reason(dome_scene, tmp_path):
         mapping.run(db, dome_scene / "images", tmp_path / "sparse")
 
 
+def test_verified_pairs_without_any_model_are_not_called_a_separate_component(
+    augmented,
+):
+    """No model at all (the mapper found no initial pair): each image's reason
+    says so, not that it lies in a component apart from registered images."""
+    from colmap_vc.mapping.outputs import why_unregistered
+
+    reasons = why_unregistered(augmented, None)
+    assert len(reasons) == 6
+    for why in reasons.values():
+        assert "no model could be started" in why and "component" not in why, why
+
+
 def test_the_mesh_mapper_without_priors_says_so(dome_scene, tmp_path):
     """`--mapper mesh` on a database `augment` never saw: a clear error, and the
     user's database is only read."""

@@ -98,6 +98,12 @@ def why_unregistered(
                 "and no virtual correspondences (no priors, or no person shared "
                 "with other images)"
             )
+        elif not reg_ids:  # no model at all: nothing to be separate from
+            reasons[name] = (
+                f"{len(pairs)} verified pair(s), but no model could be started "
+                "from them (no pair with the inliers and the triangulation angle "
+                "an initial pair needs)"
+            )
         elif not with_registered:
             reasons[name] = (
                 f"{len(pairs)} verified pair(s), none with a registered image "
