@@ -40,6 +40,7 @@ from colmap_vc.evaluation import (
     Metrics,
     evaluate_poses,
     pose_auc,
+    poses_by_name,
 )
 from colmap_vc.matching import MatchingOptions
 from colmap_vc.meshalign import mesh_alignment_poses
@@ -120,15 +121,7 @@ def run_method(
         rec, _ = mapping.run_incremental(
             run_db, DATA / "images", work / "sparse", replace(options, seed=seed)
         )
-    pred = (
-        {}
-        if rec is None
-        else {
-            im.name: im.cam_from_world().matrix()
-            for im in rec.images.values()
-            if im.has_pose
-        }
-    )
+    pred = {} if rec is None else poses_by_name(rec)
     return evaluate_poses(pred, gt)
 
 

@@ -31,7 +31,13 @@ import pycolmap
 from common import DOCS, OUT, ROOT, machine, replace_section, setup_logging, write_json
 
 from colmap_vc import cli, database
-from colmap_vc.evaluation import THRESHOLDS_DEG, Metrics, evaluate_poses, pose_auc
+from colmap_vc.evaluation import (
+    THRESHOLDS_DEG,
+    Metrics,
+    evaluate_poses,
+    pose_auc,
+    poses_by_name,
+)
 from colmap_vc.keypoint_tracks import person_identities
 from colmap_vc.priors import read_priors
 
@@ -150,15 +156,8 @@ def run_instant(
         ]
     )
     t_map = time.perf_counter() - t0
-    pred: dict[str, np.ndarray] = {}
-    if code == 0:
-        rec = _largest_model(sparse)
-        if rec is not None:
-            pred = {
-                im.name: im.cam_from_world().matrix()
-                for im in rec.images.values()
-                if im.has_pose
-            }
+    rec = _largest_model(sparse) if code == 0 else None
+    pred = {} if rec is None else poses_by_name(rec)
     metrics = evaluate_poses(pred, {n: gt[n] for n in images})
     labels = json.loads(LABELS.read_text()).get(
         f"pose2sim_{data.name.split('_')[-1]}", {}

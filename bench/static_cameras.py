@@ -37,7 +37,7 @@ from realdata import INSTANTS, SHARED, _largest_model, load_calibration, make_da
 from realdata import pooled as pool
 
 from colmap_vc import cli
-from colmap_vc.evaluation import camera_distance_ratio, evaluate_poses
+from colmap_vc.evaluation import camera_distance_ratio, evaluate_poses, poses_by_name
 
 logger = logging.getLogger("bench.static_cameras")
 PATTERN = r"(cam\d+)_"
@@ -104,15 +104,7 @@ def _map(ds: str, data, work, db, gt: dict, extra: list[str]) -> dict:
     )
     seconds = time.perf_counter() - t0
     rec = _largest_model(sparse) if code == 0 else None
-    pred = (
-        {}
-        if rec is None
-        else {
-            im.name: im.cam_from_world().matrix()
-            for im in rec.images.values()
-            if im.has_pose
-        }
-    )
+    pred = {} if rec is None else poses_by_name(rec)
     per_instant = [
         evaluate_poses(
             {n: p for n, p in pred.items() if instant in n},

@@ -38,7 +38,7 @@ from realdata import INSTANTS, SHARED, _largest_model, load_calibration, make_da
 from realdata import pooled as pool
 
 from colmap_vc import cli
-from colmap_vc.evaluation import THRESHOLDS_DEG, evaluate_poses, pose_auc
+from colmap_vc.evaluation import THRESHOLDS_DEG, evaluate_poses, pose_auc, poses_by_name
 
 logger = logging.getLogger("bench.subsets")
 CAMERAS = ("cam01", "cam02", "cam03", "cam04")
@@ -92,15 +92,7 @@ def run_one(ds: str, group: str, name: str, images: list[str], priors: Path) -> 
     )
     seconds = time.perf_counter() - t0
     rec = _largest_model(sparse) if code_map == 0 else None
-    pred = (
-        {}
-        if rec is None
-        else {
-            im.name: im.cam_from_world().matrix()
-            for im in rec.images.values()
-            if im.has_pose
-        }
-    )
+    pred = {} if rec is None else poses_by_name(rec)
     metrics = [
         evaluate_poses(
             {n: p for n, p in pred.items() if n in images and t in n},

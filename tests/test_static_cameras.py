@@ -142,22 +142,18 @@ def _static_copies(
         n: views.cameras[int(c)]
         for n, c in zip(views.image_names, views.camera_ids, strict=True)
     }
-    all_names = sorted(
-        {n.replace(".jpg", f"{t}.jpg") for n in names for t in ("", *instants)}
-        - set(drop)
-    )
-    cameras = {
-        n: camera_of[n[: n.index("_t")] + ".jpg" if "_t" in n else n] for n in all_names
+    source = {  # image name -> the dome image it copies
+        n.replace(".jpg", f"{t}.jpg"): n for n in names for t in ("", *instants)
     }
+    all_names = sorted(set(source) - set(drop))
+    cameras = {n: camera_of[source[n]] for n in all_names}
     extract_database(images, all_names, cameras, db)
     anonymous = {
         n: ImagePrior(
             image_name=n,
             persons=tuple(
                 dataclasses.replace(p, person_id=None)
-                for p in priors.images[
-                    n[: n.index("_t")] + ".jpg" if "_t" in n else n
-                ].persons
+                for p in priors.images[source[n]].persons
             ),
         )
         for n in all_names
