@@ -47,6 +47,9 @@ class CameraCheck:
     tracks: KeypointTracks
     """The keypoint tracks as the model now holds them: exchanged people's labels
     exchanged, people who left an image's tracks removed."""
+    exchanged: frozenset[tuple[int, int]] = frozenset()
+    """(image id, person identity) of the people exchanged; identity -1: every
+    person of the image. Their surface VCs come from a mesh turned front to back."""
 
 
 def best_two_view_check(
@@ -326,6 +329,11 @@ def check_cameras_inplace(
             logger.warning("camera check: %s %s", name, left_out[name])
             rec.deregister_frame(image.frame_id)
         adjust(rec)
+    whole_ids = {i for i, im in rec.images.items() if im.name in whole}
     return CameraCheck(
-        relocalised=relocalised, left_out=left_out, mirrored=mirrored, tracks=tracks
+        relocalised=relocalised,
+        left_out=left_out,
+        mirrored=mirrored,
+        tracks=tracks,
+        exchanged=frozenset(exchanged_people | {(i, -1) for i in whole_ids}),
     )

@@ -35,7 +35,7 @@ import pycolmap
 from . import database
 from .camera_check import check_cameras_inplace
 from .gba.ceres import PeopleNoise, bundle_adjust_inplace
-from .gba.noise import cluster_noise
+from .gba.correlated import correlated_noise
 from .keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
@@ -43,6 +43,7 @@ from .keypoint_tracks import (
     keypoint_observations,
     keypoint_tracks,
     loss_scale_px,
+    subset,
     surface_tracks,
     triangulate_tracks,
     vc_identities,
@@ -206,9 +207,7 @@ def keypoint_bundle_adjustment(
         vc_only.append(point_id)
         vc_obs.append(len(els))
     per_image = (
-        0.0  # replaced by the surface tracks by identity
-        if options.surface_tracks
-        else options.surface_per_image_two_view
+        options.surface_per_image_two_view
         if len(registered) == 2
         else options.surface_per_image
     )
@@ -238,22 +237,17 @@ def keypoint_bundle_adjustment(
             good, counts = add_keypoint_points(out, tracks, options.min_track_length)
             bundle_adjust_inplace(out, loss)
     num_kp_obs = int(counts[good].sum())
-    people: PeopleNoise | None = None
     num_surface = int(sum(vc_obs)) - dropped
-    if options.surface_tracks:
-        people, num_surface = add_weighted_surface(
-            database_path, out, tracks, registered, options
-        )
-        bundle_adjust_inplace(out, loss, people)
     relocalised: list[str] = []
     left_out: dict[str, str] = {}
     mirrored: list[str] = []
+    exchanged: frozenset[tuple[int, int]] = frozenset()
     if options.check_cameras:
         check = check_cameras_inplace(
             out,
             tracks,
             options,
-            lambda rec: bundle_adjust_inplace(rec, loss, people),
+            lambda rec: bundle_adjust_inplace(rec, loss),
             mirror=mirror,
             num_classic=num_classic,
             vc_identity=vc_identities(Path(database_path)),
@@ -263,7 +257,19 @@ def keypoint_bundle_adjustment(
             check.left_out,
             check.mirrored,
         )
-        tracks = check.tracks
+        tracks, exchanged = check.tracks, check.exchanged
+    people: PeopleNoise | None = None
+    if options.surface_tracks:
+        # After the camera check: a prior turned front to back would pull its
+        # camera with hundreds of surface samples before the check could
+        # exchange its people's left and right.
+        for point_id in vc_only:  # the budget's points: replaced by the tracks
+            if out.exists_point3D(point_id):
+                out.delete_point3D(point_id)
+        people, num_surface = add_weighted_surface(
+            database_path, out, tracks, options, exchanged
+        )
+        bundle_adjust_inplace(out, loss, people)
     summary = KeypointBaSummary(
         num_tracks=int(good.sum()),
         num_keypoint_observations=num_kp_obs,
@@ -292,39 +298,73 @@ def add_weighted_surface(
     database_path: Path,
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
-    registered: np.ndarray,
     options: KeypointBaOptions,
+    exchanged: frozenset[tuple[int, int]] = frozenset(),
 ) -> tuple[PeopleNoise, int]:
-    """Add the surface tracks by identity to ``rec`` (its poses adjusted by the
-    keypoints) and weigh every keypoint and surface observation by its cluster's
-    noise -> (the people's noise, surface observations added)."""
+    """Add the surface tracks by identity of ``rec``'s posed images (its poses
+    adjusted by the keypoints ``tracks``) and weigh each surface observation
+    relative to the keypoints by its spread and correlation with its neighbours
+    (:mod:`colmap_vc.gba.correlated`) -> (the people's noise, surface
+    observations added). The keypoints keep COLMAP's loss and unit weight.
+    People in ``exchanged`` ((image, identity); -1: the whole image) add none:
+    their mesh was turned front to back."""
+    registered = np.array(
+        sorted(i for i, im in rec.images.items() if im.has_pose), dtype=np.int64
+    )
     surface = surface_tracks(database_path, registered)
+    if surface.num_tracks and tracks.num_tracks and tracks.keys is not None:
+        # Only people whose keypoints the checks kept in that image, and not
+        # those exchanged there.
+        assert surface.keys is not None
+        identity = surface.keys[surface.track, 0]
+        width = int(max(identity.max(), tracks.keys[:, 0].max())) + 2
+        code = surface.image_id * width + identity
+        kept = np.unique(tracks.image_id * width + tracks.keys[tracks.track, 0])
+        pairs = np.array(sorted(exchanged), dtype=np.int64).reshape(-1, 2)
+        person = pairs[pairs[:, 1] >= 0]
+        out = np.isin(surface.image_id, pairs[pairs[:, 1] < 0, 0]) | np.isin(
+            code, person[:, 0] * width + person[:, 1]
+        )
+        surface = subset(surface, np.isin(code, kept) & ~out)
     sigma = {
         int(i): np.full(rec.image(int(i)).num_points2D(), np.nan) for i in registered
     }
     robust = {i: np.full_like(v, np.nan) for i, v in sigma.items()}
-    num_surface = 0
-    for kind, trk in (("keypoint", tracks), ("surface", surface)):
-        if trk.num_tracks == 0:
-            continue
-        X, counts = triangulate_tracks(rec, trk)
-        noise = cluster_noise(rec, trk, X)
-        per_obs = noise.observation_sigma_px(options.min_sigma_px)
-        spread = noise.observation_spread_px(options.min_sigma_px)
-        ok = np.isfinite(per_obs)
-        for image_id in np.unique(trk.image_id[ok]):  # loop over images
-            sel = ok & (trk.image_id == image_id)
-            sigma[int(image_id)][trk.point2D_idx[sel]] = per_obs[sel]
-            robust[int(image_id)][trk.point2D_idx[sel]] = (
-                options.robust_sigmas * spread[sel]
-            )
-        logger.debug(
-            "GBA %s noise per (image, person): spread %s px, shared %s px",
-            kind,
-            np.round(np.median(noise.sigma_px), 2) if len(noise.sigma_px) else None,
-            np.round(np.median(noise.tau_px), 2) if len(noise.tau_px) else None,
+    if surface.num_tracks == 0 or tracks.num_tracks == 0:
+        return PeopleNoise(sigma_px=sigma, robust_px=robust), 0
+    keypoints = correlated_noise(rec, tracks, triangulate_tracks(rec, tracks)[0])
+    if not len(keypoints.sigma_px):
+        return PeopleNoise(sigma_px=sigma, robust_px=robust), 0
+    unit = max(float(np.median(keypoints.sigma_px)), options.min_sigma_px)
+    X, counts = triangulate_tracks(rec, surface)
+    noise = correlated_noise(rec, surface, X)
+    # In keypoint units: the keypoints keep COLMAP's loss and unit weight.
+    per_obs = _log_rounded(noise.observation_sigma_px(options.min_sigma_px) / unit)
+    spread = noise.observation_spread_px(options.min_sigma_px)
+    ok = np.isfinite(per_obs)
+    for image_id in np.unique(surface.image_id[ok]):  # loop over images
+        sel = ok & (surface.image_id == image_id)
+        sigma[int(image_id)][surface.point2D_idx[sel]] = per_obs[sel]
+        robust[int(image_id)][surface.point2D_idx[sel]] = (
+            options.robust_sigmas * spread[sel]
         )
-        if kind == "surface":
-            good, _ = add_keypoint_points(rec, trk, options.min_track_length)
-            num_surface = int(counts[good].sum())
+    logger.debug(
+        "GBA: keypoint spread %.2f px; surface spread %.2f px, correlation %s by "
+        "distance %s px, design effect median %.1f",
+        unit,
+        float(np.median(noise.sigma_px)) if len(noise.sigma_px) else float("nan"),
+        np.round(noise.rho, 2),
+        np.round(noise.bin_edges_px[1:], 1),
+        float(np.nanmedian(noise.design)) if ok.any() else float("nan"),
+    )
+    good, _ = add_keypoint_points(rec, surface, options.min_track_length)
+    num_surface = int(counts[good].sum())
     return PeopleNoise(sigma_px=sigma, robust_px=robust), num_surface
+
+
+def _log_rounded(sigma: np.ndarray, step: float = 0.02) -> np.ndarray:
+    """``sigma`` rounded to 2% steps: one whitened camera block per (camera, value)
+    (:func:`colmap_vc.gba.ceres.bundle_adjust_inplace`), a few dozen, not one per
+    observation."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.exp(np.round(np.log(sigma) / step) * step)
