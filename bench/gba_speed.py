@@ -78,7 +78,7 @@ def gba_model(db: Path, rec: pycolmap.Reconstruction, options: KeypointBaOptions
     add_keypoint_points(out, tracks, options.min_track_length)
     bundle_adjust_inplace(out, options.loss_scale_px)
     t0 = time.perf_counter()
-    people, _ = add_weighted_surface(db, out, tracks, registered, options)
+    people, _ = add_weighted_surface(db, out, tracks, options)
     return out, people, time.perf_counter() - t0
 
 

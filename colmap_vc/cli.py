@@ -176,10 +176,10 @@ class Map:
         default_factory=MappingOptions
     )
     gba: bool = False
-    """Refine with the generalized BA (every surface VC as a track by identity, each
-    person's observations weighted by their noise estimated per image) instead of
-    the keypoint BA's fixed budget of surface VCs. Off by default: it loses on the
-    3-person domes and on pose2sim (docs/gba.md)."""
+    """Refine with the generalized BA: every surface VC as a track by identity,
+    weighted by its spread and its correlation with its neighbours, instead of the
+    keypoint BA's fixed budget of surface VCs. Off by default: it wins on the
+    synthetic domes and loses on pose2sim_single (docs/gba.md)."""
     overwrite: bool = False
     """Replace an OUTPUT_PATH that `map` wrote before (it holds a .colmap-vc-map
     marker); a folder colmap-vc did not write, or one holding the database, images or

@@ -16,8 +16,8 @@ On pose2sim (docs/results.md) the pass converges to the same poses from the mapp
 model, from the keypoint-only model and from the ground truth.
 
 With ``surface_tracks`` (``map --gba``) the pass is the generalized bundle
-adjustment instead: every surface VC joins its track by identity, and each
-person's observations in each image are weighted by their noise
+adjustment instead: after the camera check every surface VC joins its track by
+identity, weighted by its measured spread and correlation with its neighbours
 (:func:`add_weighted_surface`, docs/gba.md).
 """
 
@@ -81,12 +81,14 @@ class KeypointBaOptions:
     condition it (synthetic two-view scenes, realistic priors: AUC@15 20.8 with 6,
     34.5 with 24; docs/results.md)."""
     surface_tracks: bool = False
-    """The generalized BA (``map --gba``): every surface VC joins its track by
-    identity (person, template sample: one X1 shared by all views), and every
-    keypoint and surface observation is weighted by the noise of its (image,
-    person) cluster, estimated from the data (:mod:`colmap_vc.gba.noise`), instead
-    of the fixed budget ``surface_per_image`` under one loss. Off by default: it
-    loses to the budget on the 3-person domes and on pose2sim (docs/gba.md)."""
+    """The generalized BA (``map --gba``): after the camera check, the budget's
+    surface points give way to every surface VC in its track by identity (person,
+    template sample: one X1 shared by all views), each observation weighted by
+    its spread and its correlation with its neighbours in the image, relative to
+    the keypoints (:mod:`colmap_vc.gba.correlated`), instead of the fixed budget
+    ``surface_per_image`` under the keypoints' loss. Off by default: against the
+    budget it wins on the synthetic domes and loses on pose2sim_single
+    (docs/gba.md, "Measured")."""
     min_sigma_px: float = 0.5
     """Smallest noise a cluster is given, pixels: a spread estimated below half a
     pixel (clean synthetic priors) is rendering, not detection, precision."""
@@ -326,19 +328,34 @@ def add_weighted_surface(
             code, person[:, 0] * width + person[:, 1]
         )
         surface = subset(surface, np.isin(code, kept) & ~out)
-    sigma = {
-        int(i): np.full(rec.image(int(i)).num_points2D(), np.nan) for i in registered
-    }
+    people = surface_noise(rec, tracks, surface, options)
+    if not any(np.isfinite(v).any() for v in people.sigma_px.values()):
+        return people, 0
+    good, counts = add_keypoint_points(rec, surface, options.min_track_length)
+    return people, int(counts[good].sum())
+
+
+def surface_noise(
+    rec: pycolmap.Reconstruction,
+    keypoints: KeypointTracks,
+    surface: KeypointTracks,
+    options: KeypointBaOptions,
+) -> PeopleNoise:
+    """The noise of each ``surface`` observation in keypoint units: its spread
+    times the square root of its design effect (:mod:`colmap_vc.gba.correlated`),
+    over the keypoints' spread, which keep COLMAP's loss and unit weight; a
+    Cauchy loss at ``robust_sigmas`` spreads. Both kinds' spreads are measured
+    against their tracks' points triangulated with ``rec``'s poses."""
+    registered = sorted(i for i, im in rec.images.items() if im.has_pose)
+    sigma = {i: np.full(rec.image(i).num_points2D(), np.nan) for i in registered}
     robust = {i: np.full_like(v, np.nan) for i, v in sigma.items()}
-    if surface.num_tracks == 0 or tracks.num_tracks == 0:
-        return PeopleNoise(sigma_px=sigma, robust_px=robust), 0
-    keypoints = correlated_noise(rec, tracks, triangulate_tracks(rec, tracks)[0])
-    if not len(keypoints.sigma_px):
-        return PeopleNoise(sigma_px=sigma, robust_px=robust), 0
-    unit = max(float(np.median(keypoints.sigma_px)), options.min_sigma_px)
-    X, counts = triangulate_tracks(rec, surface)
-    noise = correlated_noise(rec, surface, X)
-    # In keypoint units: the keypoints keep COLMAP's loss and unit weight.
+    if surface.num_tracks == 0 or keypoints.num_tracks == 0:
+        return PeopleNoise(sigma_px=sigma, robust_px=robust)
+    kp = correlated_noise(rec, keypoints, triangulate_tracks(rec, keypoints)[0])
+    if not len(kp.sigma_px):
+        return PeopleNoise(sigma_px=sigma, robust_px=robust)
+    unit = max(float(np.median(kp.sigma_px)), options.min_sigma_px)
+    noise = correlated_noise(rec, surface, triangulate_tracks(rec, surface)[0])
     per_obs = _log_rounded(noise.observation_sigma_px(options.min_sigma_px) / unit)
     spread = noise.observation_spread_px(options.min_sigma_px)
     ok = np.isfinite(per_obs)
@@ -357,9 +374,7 @@ def add_weighted_surface(
         np.round(noise.bin_edges_px[1:], 1),
         float(np.nanmedian(noise.design)) if ok.any() else float("nan"),
     )
-    good, _ = add_keypoint_points(rec, surface, options.min_track_length)
-    num_surface = int(counts[good].sum())
-    return PeopleNoise(sigma_px=sigma, robust_px=robust), num_surface
+    return PeopleNoise(sigma_px=sigma, robust_px=robust)
 
 
 def _log_rounded(sigma: np.ndarray, step: float = 0.02) -> np.ndarray:

@@ -9,6 +9,7 @@ import pytest
 
 from colmap_vc.evaluation import evaluate_reconstruction
 from colmap_vc.gba.ceres import PeopleNoise, bundle_adjust_inplace
+from colmap_vc.gba.correlated import correlated_noise
 from colmap_vc.gba.noise import cluster_noise, reprojection_residuals
 from colmap_vc.keypoint_tracks import KeypointTracks, triangulate_tracks
 
@@ -151,3 +152,120 @@ def test_cluster_noise_separates_shared_and_own_error(dome_scene, rng, turn_deg)
     per_obs = noise.observation_sigma_px(0.5)
     expected = np.sqrt(noise.sigma_px**2 + noise.count * noise.tau_px**2)
     assert np.allclose(per_obs, expected[noise.cluster])
+
+
+def _smooth_field(xy: np.ndarray, wavelength_px: float, rng) -> np.ndarray:
+    """(N, 2) a random smooth error field at the pixels ``xy``, unit standard
+    deviation per coordinate: 16 plane waves of the given wavelength."""
+    k = 16
+    out = np.zeros_like(xy)
+    for c in range(2):  # loop over the two coordinates
+        u = rng.normal(size=(k, 2))
+        u /= np.linalg.norm(u, axis=1, keepdims=True)
+        phase = rng.uniform(0, 2 * np.pi, k)
+        out[:, c] = np.sqrt(2.0 / k) * np.cos(
+            2 * np.pi / wavelength_px * xy @ u.T + phase
+        ).sum(axis=1)
+    return out
+
+
+def _with_error(tracks: KeypointTracks, rec, error) -> KeypointTracks:
+    """``tracks`` with ``error(image_xy)`` (N, 2) added image by image."""
+    xy = tracks.xy_img.copy()
+    for i in np.unique(tracks.image_id):
+        sel = tracks.image_id == i
+        xy[sel] += error(xy[sel])
+    return KeypointTracks(
+        track=tracks.track,
+        image_id=tracks.image_id,
+        point2D_idx=tracks.point2D_idx,
+        xy_img=xy,
+        keys=tracks.keys,
+    )
+
+
+def test_correlated_noise_counts_the_neighbours_that_share_an_error(dome_scene, rng):
+    """Independent pixel noise: the spread comes back and each observation counts
+    about once. Errors that slide neighbouring pixels together: the correlation
+    falls with distance, and each observation counts as a share of its
+    neighbourhood, the larger the longer the error's wavelength."""
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    X = rng.normal(0, 0.15, (400, 3)) * [1, 3, 1] + [0, -0.9, 0]  # a body
+    rec, clean = _observed(gt, X, dict.fromkeys(gt.reg_image_ids(), 0.0), rng)
+    design = {}
+    for name, error in (
+        ("independent", lambda xy: rng.normal(0, 2.0, xy.shape)),
+        ("short", lambda xy: 2.0 * _smooth_field(xy, 40.0, rng)),
+        ("long", lambda xy: 2.0 * _smooth_field(xy, 400.0, rng)),
+    ):
+        noisy = _with_error(clean, rec, error)
+        noise = correlated_noise(rec, noisy, triangulate_tracks(rec, noisy)[0])
+        assert len(noise.sigma_px) == rec.num_reg_images()
+        assert (noise.cluster >= 0).all()
+        assert noise.rho[0] == 1.0 and (np.diff(noise.rho) <= 0).all()
+        design[name] = float(np.median(noise.design))
+        if name == "independent":
+            assert np.allclose(noise.sigma_px, 2.0, rtol=0.2)
+            # bins of a few close pairs read as the closest (1); measured ones ~0
+            assert noise.rho[noise.bin_edges_px[:-1] >= 8.0].max() < 0.1
+        per_obs = noise.observation_sigma_px(0.5)
+        spread = noise.observation_spread_px(0.5)
+        assert np.allclose(per_obs, spread * np.sqrt(noise.design))
+    assert design["independent"] < 3.0
+    assert design["short"] > 2 * design["independent"]
+    assert design["long"] > 2 * design["short"]
+    assert design["long"] > 0.3 * len(X)
+
+
+def test_shared_errors_weighted_by_their_correlation_move_no_camera(dome_scene, rng):
+    """In every image all surface samples slide by one 6 px vector of their own
+    (a body map shifted as a whole), the 17 keypoints are right to 0.5 px:
+    weighted as independent observations the samples pull the cameras; weighted
+    by their design effect, relative to the keypoints as the GBA does, each
+    image's samples count as about one observation and the cameras stay where
+    the keypoints alone put them."""
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    body = rng.normal(0, 0.15, (417, 3)) * [1, 3, 1] + [0, -0.9, 0]
+    rec, clean = _observed(gt, body, dict.fromkeys(gt.reg_image_ids(), 0.5), rng)
+    surface = clean.track >= 17  # 17 keypoints, 400 surface samples
+    shifts = {i: rng.normal(size=2) for i in rec.reg_image_ids()}
+    shift = np.array(
+        [6.0 * shifts[i] / np.linalg.norm(shifts[i]) for i in clean.image_id]
+    )
+    shift[~surface] = 0.0
+    for i in rec.reg_image_ids():  # the model's pixels carry the shift too
+        sel = clean.image_id == i
+        for idx, xy in zip(
+            clean.point2D_idx[sel].tolist(), clean.xy_img[sel] + shift[sel], strict=True
+        ):
+            rec.image(i).points2D[idx].xy = xy
+    tracks = KeypointTracks(
+        track=clean.track[surface] - 17,
+        image_id=clean.image_id[surface],
+        point2D_idx=clean.point2D_idx[surface],
+        xy_img=clean.xy_img[surface] + shift[surface],
+        keys=clean.keys[17:],
+    )
+    noise = correlated_noise(rec, tracks, triangulate_tracks(rec, tracks)[0])
+    assert np.median(noise.design) > 0.5 * 400
+    errors = {}
+    for name, sigma_obs in (
+        ("independent", np.full(len(tracks.track), 0.5)),
+        ("correlated", noise.observation_sigma_px(0.5)),
+        ("keypoints alone", np.full(len(tracks.track), 1e3)),
+    ):
+        sigma = {
+            i: np.full(rec.image(i).num_points2D(), np.nan) for i in rec.reg_image_ids()
+        }
+        for i in sigma:
+            sel = tracks.image_id == i
+            sigma[i][tracks.point2D_idx[sel]] = sigma_obs[sel] / 0.5  # keypoint units
+        robust = {i: np.where(np.isfinite(v), 100.0, np.nan) for i, v in sigma.items()}
+        adjusted = pycolmap.Reconstruction(rec)
+        bundle_adjust_inplace(
+            adjusted, 1000.0, PeopleNoise(sigma_px=sigma, robust_px=robust)
+        )
+        errors[name] = evaluate_reconstruction(adjusted, gt).median_error_deg
+    alone = errors["keypoints alone"]
+    assert errors["independent"] > 1.3 * alone
+    assert abs(errors["correlated"] - alone) < 0.1 * alone

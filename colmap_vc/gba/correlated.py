@@ -125,12 +125,12 @@ def correlated_noise(
         count += len(inl)
     if count == 0:
         return none
-    rho = _monotone(num, den, var / count)
+    rho = _monotone(num, den, var / count, 2.0 / np.sqrt(count))
     design = np.full(len(tracks.track), np.nan)
     for m in members:  # loop over clusters
         d = _distances(tracks.xy_img[m])
         b = np.clip(np.searchsorted(edges, d, side="right") - 1, 0, len(rho) - 1)
-        design[m] = rho[b].sum(axis=1) - rho[0] + 1.0  # itself: rho(0) = 1
+        design[m] = rho[b].sum(axis=1)  # itself included: rho(0) = 1
     return CorrelatedNoise(
         cluster=cluster, sigma_px=sigma, bin_edges_px=edges, rho=rho, design=design
     )
@@ -155,14 +155,19 @@ def _distances(xy: FloatArray) -> FloatArray:
     return np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)
 
 
-def _monotone(num: FloatArray, den: FloatArray, var: float) -> FloatArray:
+def _monotone(num: FloatArray, den: FloatArray, var: float, noise: float) -> FloatArray:
     """Correlation per bin: covariance over variance, empty bins taking the
-    previous bin's value, non-increasing, within [0, 1]."""
+    previous bin's value, non-increasing, within [0, 1], zero from the first bin
+    below ``noise`` on."""
     rho = np.full(len(num), np.nan)
-    seen = den > 0
+    # A bin's correlation has a standard error of at least 1 / sqrt(its pairs):
+    # bins with fewer pairs than the significance level asks are read as empty.
+    seen = den >= 1.0 / noise**2
     rho[seen] = num[seen] / den[seen] / max(var, 1e-12)
-    rho[0] = 1.0 if not seen[0] else rho[0]
+    rho[0] = 1.0  # closer than a pixel: the same error
     for k in range(1, len(rho)):  # loop over a few dozen bins
         if not seen[k]:
             rho[k] = rho[k - 1]
-    return np.clip(np.minimum.accumulate(np.clip(rho, 0.0, 1.0)), 0.0, 1.0)
+    rho = np.minimum.accumulate(np.clip(rho, 0.0, 1.0))
+    rho[np.cumsum(rho < noise) > 0] = 0.0
+    return rho
