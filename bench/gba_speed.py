@@ -118,18 +118,12 @@ def main() -> None:
     def colmap_problem() -> int:
         copy = pycolmap.Reconstruction(model)
         s = bundle_adjust_inplace(copy, options.loss_scale_px)
-        return (
-            s.ceres_summary.num_successful_steps
-            + s.ceres_summary.num_unsuccessful_steps
-        )
+        return s.num_successful_steps + s.num_unsuccessful_steps
 
     def gba() -> int:
         copy = pycolmap.Reconstruction(model)
         s = bundle_adjust_inplace(copy, options.loss_scale_px, people)
-        return (
-            s.ceres_summary.num_successful_steps
-            + s.ceres_summary.num_unsuccessful_steps
-        )
+        return s.num_successful_steps + s.num_unsuccessful_steps
 
     arms = {
         "COLMAP BA (pycolmap.bundle_adjustment)": colmap_ba,
