@@ -107,6 +107,7 @@ def correlated_noise(
         for m in members  # loop over clusters
     )
     edges = _edges(extent)
+    nbins = len(edges) - 1
     num = np.zeros(len(edges) - 1)
     den = np.zeros(len(edges) - 1)
     var = 0.0
@@ -115,12 +116,11 @@ def correlated_noise(
         inl = m[np.abs(r[m]).max(axis=1) <= RAYLEIGH_INLIER * max(s, 1e-9)]
         if len(inl) < 2:
             continue
-        d = _distances(tracks.xy_img[inl])
+        b = _bins(tracks.xy_img[inl], nbins)
         cov = r[inl] @ r[inl].T / 2.0
         iu = np.triu_indices(len(inl), k=1)
-        b = np.searchsorted(edges, d[iu], side="right") - 1
-        num += np.bincount(b, weights=cov[iu], minlength=len(num))[: len(num)]
-        den += np.bincount(b, minlength=len(den))[: len(den)]
+        num += np.bincount(b[iu], weights=cov[iu], minlength=nbins)
+        den += np.bincount(b[iu], minlength=nbins)
         var += float(np.trace(cov))
         count += len(inl)
     if count == 0:
@@ -128,9 +128,7 @@ def correlated_noise(
     rho = _monotone(num, den, var / count, 2.0 / np.sqrt(count))
     design = np.full(len(tracks.track), np.nan)
     for m in members:  # loop over clusters
-        d = _distances(tracks.xy_img[m])
-        b = np.clip(np.searchsorted(edges, d, side="right") - 1, 0, len(rho) - 1)
-        design[m] = rho[b].sum(axis=1)  # itself included: rho(0) = 1
+        design[m] = rho[_bins(tracks.xy_img[m], nbins)].sum(axis=1)  # rho(0) = 1
     return CorrelatedNoise(
         cluster=cluster, sigma_px=sigma, bin_edges_px=edges, rho=rho, design=design
     )
@@ -150,9 +148,13 @@ def _edges(extent_px: float) -> FloatArray:
     return np.r_[0.0, np.sqrt(2.0) ** np.arange(k)]
 
 
-def _distances(xy: FloatArray) -> FloatArray:
-    """(N, N) pixel distances."""
-    return np.linalg.norm(xy[:, None, :] - xy[None, :, :], axis=2)
+def _bins(xy: FloatArray, num_bins: int) -> IndexArray:
+    """(N, N) distance bin (:func:`_edges`) of every pair of pixels: 0 below 1 px,
+    then floor(log2 d^2) + 1, as edges growing by sqrt(2) from 1 px give."""
+    d2 = (xy[:, None, 0] - xy[None, :, 0]) ** 2 + (xy[:, None, 1] - xy[None, :, 1]) ** 2
+    with np.errstate(divide="ignore"):
+        b = np.floor(np.log2(d2)) + 1.0
+    return np.clip(np.nan_to_num(b, neginf=0.0), 0, num_bins - 1).astype(np.intp)
 
 
 def _monotone(num: FloatArray, den: FloatArray, var: float, noise: float) -> FloatArray:
