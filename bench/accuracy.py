@@ -88,9 +88,9 @@ LEGEND = [
     "registration and triangulation without BA); *VC + BA* (pycolmap's mapper with "
     "its BA); *VC + keypoint BA* (then the keypoint bundle adjustment: what "
     "`colmap-vc map` does); *VC + GBA* (`map --gba`: the generalized BA instead, "
-    "every surface VC a track by identity and each person's observations weighted "
-    "by their noise, docs/gba.md); *+ classic*: VCs verified together with the SIFT "
-    "matches.",
+    "every surface VC a track by identity, weighted by its spread and its "
+    "correlation with its neighbours, docs/gba.md); *+ classic*: VCs verified "
+    "together with the SIFT matches.",
     "",
 ]
 

@@ -181,7 +181,7 @@ def main() -> None:
         f"observations (keypoint and surface tracks by identity, plus the mapper's "
         f"classic points). **GBA / COLMAP BA: {ratio:.2f}** (median of the "
         f"per-repeat ratios; goal <= 1.2); the "
-        f"noise model before it (triangulation, noise per cluster) "
+        f"noise model before it (triangulation, spread and correlation) "
         f"{noise_s:.2f} s. Median of {args.repeats} interleaved runs at commit "
         f"{machine()['commit']}, `.venv/bin/python bench/gba_speed.py`; raw numbers "
         "in `bench/out/gba_speed.json`.",
