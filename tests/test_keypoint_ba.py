@@ -597,7 +597,11 @@ def test_gba_weights_surface_tracks_by_their_noise(dome_scene, mapped, rng):
     assert summary.people is not None and summary.num_surface_observations > 0
     assert summary.tracks is not None
     keypoint_obs = set(
-        zip(summary.tracks.image_id.tolist(), summary.tracks.point2D_idx.tolist())
+        zip(
+            summary.tracks.image_id.tolist(),
+            summary.tracks.point2D_idx.tolist(),
+            strict=True,
+        )
     )
     weighted = {
         (i, int(k))
