@@ -21,6 +21,11 @@ depth errs in that way. tau^2 is its mean square per coordinate less what noise
 alone would fit (6 s^2 / N, s the spread left in the residuals); the spread
 sigma is the scaled MAD of the rest, corrected for the fit of the points to
 their own views (a two-view track's residuals keep a quarter of the variance).
+
+`map` uses it for the keypoints: what one keypoint residual is worth against the
+cameras' up (:mod:`colmap_vc.mapping.up`). The GBA's surface samples are weighted
+by :mod:`colmap_vc.gba.correlated` instead, whose correlation by distance also
+sees errors shorter-ranged than a whole person's.
 """
 
 from __future__ import annotations
