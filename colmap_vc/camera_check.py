@@ -270,7 +270,32 @@ def check_cameras_inplace(
         pnp, pose = robust_pnp(
             camera, checks[worst][1], checks[worst][2], options, limit
         )
-        if pnp <= limit:
+        # Two explanations of a camera that misses by far: its pose is wrong, or
+        # its people are labelled as if seen from the front (left for right).
+        # Both are fitted; the better fit is kept.
+        swapped = relabelled(tracks, worst, partner)
+        check = best_two_view_check(
+            rec, swapped, worst, witnesses[worst], options.min_check_points
+        )
+        swapped_pnp, swapped_pose = (
+            robust_pnp(camera, check[1], check[2], options, limit)
+            if partner.size and (partner >= 0).any()
+            else (np.inf, None)
+        )
+        logger.debug(
+            "camera check: %s misses by %.0f px (limit %.0f px): PnP as labelled "
+            "%.0f px, with left and right exchanged %.0f px against the best pair "
+            "(%.0f px, %d points)",
+            name,
+            errs[worst],
+            limit,
+            pnp,
+            swapped_pnp,
+            check[0],
+            len(check[1]),
+        )
+        can_swap = num_classic is not None and swapped_pose is not None
+        if pnp <= limit and (pnp <= swapped_pnp or not can_swap):
             rec.frame(image.frame_id).rig_from_world = pose
             logger.warning(
                 "camera check: %s re-posed by PnP on the keypoints two other cameras "
@@ -284,23 +309,11 @@ def check_cameras_inplace(
             relocalised.append(name)
             adjust(rec)
             continue
-        swapped = relabelled(tracks, worst, partner)
-        check = best_two_view_check(
-            rec, swapped, worst, witnesses[worst], options.min_check_points
-        )
-        swapped_pnp, swapped_pose = robust_pnp(
-            camera, check[1], check[2], options, limit
-        )
-        logger.debug(
-            "camera check: %s with left and right exchanged: %.0f px against the "
-            "best pair, PnP on %d points %.0f px (limit %.0f px)",
-            name,
-            check[0],
-            len(check[1]),
-            swapped_pnp,
-            limit,
-        )
-        if swapped_pnp <= limit and num_classic is not None and swapped_pose:
+        if (
+            swapped_pnp <= limit
+            and num_classic is not None
+            and swapped_pose is not None
+        ):
             exchange_labels_inplace(
                 rec, tracks, swapped, worst, swapped_pose, num_classic, options
             )
