@@ -151,23 +151,22 @@ def check_cameras_inplace(
 
     A camera whose keypoints miss the points of every pair of other cameras (the
     best pair's median error above ``max_check_ratio`` times the median camera's)
-    contradicts the rest: a prior turned front to back puts its camera on the
-    mirror side, consistently in every pair and cycle, and only the people's
-    asymmetric 3D pose shows it. It is re-posed by PnP on the best pair's points
-    when that fits as well as the other cameras do. Else, with ``mirror``, its
-    people's keypoints are tried with left and right exchanged: a pose estimator
-    that sees a person from the back but takes them for facing the camera labels
-    every left landmark right (pose2sim_single cam02 at t050 and t070). When that
-    fits, the camera is re-posed, its keypoints join their counterparts' tracks and
-    its surface VCs (from the mesh turned front to back) leave the model. Else the
-    camera is left out. When no camera misses by that much, a camera one of whose
-    people fits the points all other cameras triangulate significantly better
-    with left and right exchanged (:func:`labels_exchanged`) is re-posed with them
-    when the adjusted model then fits all keypoints better (:func:`try_exchange`):
-    a nearly symmetric pose lets a turned prior fit within the ratio. A camera
-    that classic keypoints place (``min_classic_support`` model points) is a
-    witness, never judged: there the
-    people are what is wrong. Needs 4+ cameras (with 3, two cameras always agree
+    contradicts the rest: a prior turned front to back puts its camera on the mirror
+    side, consistently in every pair and cycle, and only the people's asymmetric 3D
+    pose shows it. Two explanations are fitted by PnP on the best pair's points: its
+    pose is wrong (the keypoints as labelled), or, with ``mirror``, its people are
+    labelled left for right, as a pose estimator does that sees a person from the
+    back but takes them for facing the camera (pose2sim_single cam02 at t050 and
+    t070). The better fit within the limit is kept; with the exchange, the camera's
+    keypoints join their counterparts' tracks and its surface VCs (from the mesh
+    turned front to back) leave the model. A camera that fits neither way is left
+    out. When no camera misses by that much, a camera one of whose people fits the
+    points all other cameras triangulate significantly better with left and right
+    exchanged (:func:`labels_exchanged`) is re-posed with them when the adjusted
+    model then fits all keypoints better (:func:`try_exchange`): a nearly symmetric
+    pose lets a turned prior fit within the ratio. A camera that classic keypoints
+    place (``min_classic_support`` model points) is a witness, never judged: there
+    the people are what is wrong. Needs 4+ cameras (with 3, two cameras always agree
     with each other). Cameras are visited in name order, worst first; ``adjust``
     bundle-adjusts the model after each change; ``vc_identity`` (per image, the
     person identity of each VC) keeps the surface VCs of an image's other people
