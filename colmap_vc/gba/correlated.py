@@ -40,8 +40,8 @@ from ..keypoint_tracks import KeypointTracks
 from ..structs import FloatArray, IndexArray
 from .noise import MAD_TO_SIGMA, reprojection_residuals
 
-RAYLEIGH_INLIER = 3.0
-"""Residuals within this many spreads (per coordinate) of zero enter the
+INLIER_SPREADS = 3.0
+"""Residuals within this many spreads of zero in both coordinates enter the
 correlation estimate."""
 
 
@@ -108,12 +108,12 @@ def correlated_noise(
     )
     edges = _edges(extent)
     nbins = len(edges) - 1
-    num = np.zeros(len(edges) - 1)
-    den = np.zeros(len(edges) - 1)
+    num = np.zeros(nbins)
+    den = np.zeros(nbins)
     var = 0.0
     count = 0
     for m, s in zip(members, sigma, strict=True):  # loop over clusters
-        inl = m[np.abs(r[m]).max(axis=1) <= RAYLEIGH_INLIER * max(s, 1e-9)]
+        inl = m[np.abs(r[m]).max(axis=1) <= INLIER_SPREADS * max(s, 1e-9)]
         if len(inl) < 2:
             continue
         b = _bins(tracks.xy_img[inl], nbins)
