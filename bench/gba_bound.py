@@ -29,6 +29,7 @@ docs/gba.md (section gba-bound).
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import logging
 import shutil
 import time
@@ -141,13 +142,7 @@ def truth_kept(gt: pycolmap.Reconstruction, tracks: kt.KeypointTracks):
 
 
 def with_pixels(tracks: kt.KeypointTracks, xy: np.ndarray) -> kt.KeypointTracks:
-    return kt.KeypointTracks(
-        track=tracks.track,
-        image_id=tracks.image_id,
-        point2D_idx=tracks.point2D_idx,
-        xy_img=xy,
-        keys=tracks.keys,
-    )
+    return dataclasses.replace(tracks, xy_img=xy)
 
 
 def similarity_removed(tracks: kt.KeypointTracks, truth: np.ndarray) -> np.ndarray:

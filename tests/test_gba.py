@@ -3,6 +3,8 @@ and its noise model."""
 
 from __future__ import annotations
 
+import dataclasses
+
 import numpy as np
 import pycolmap
 import pytest
@@ -126,13 +128,7 @@ def test_cluster_noise_separates_shared_and_own_error(dome_scene, rng, turn_deg)
         xy[sel] = moved + rng.normal(0, sigma, moved.shape)
 
     def with_pixels(pixels: np.ndarray) -> KeypointTracks:
-        return KeypointTracks(
-            track=tracks.track,
-            image_id=tracks.image_id,
-            point2D_idx=tracks.point2D_idx,
-            xy_img=pixels,
-            keys=tracks.keys,
-        )
+        return dataclasses.replace(tracks, xy_img=pixels)
 
     noisy = with_pixels(xy)
     noise = cluster_noise(rec, noisy, triangulate_tracks(rec, noisy)[0])
@@ -169,19 +165,13 @@ def _smooth_field(xy: np.ndarray, wavelength_px: float, rng) -> np.ndarray:
     return out
 
 
-def _with_error(tracks: KeypointTracks, rec, error) -> KeypointTracks:
+def _with_error(tracks: KeypointTracks, error) -> KeypointTracks:
     """``tracks`` with ``error(image_xy)`` (N, 2) added image by image."""
     xy = tracks.xy_img.copy()
     for i in np.unique(tracks.image_id):
         sel = tracks.image_id == i
         xy[sel] += error(xy[sel])
-    return KeypointTracks(
-        track=tracks.track,
-        image_id=tracks.image_id,
-        point2D_idx=tracks.point2D_idx,
-        xy_img=xy,
-        keys=tracks.keys,
-    )
+    return dataclasses.replace(tracks, xy_img=xy)
 
 
 def test_correlated_noise_counts_the_neighbours_that_share_an_error(dome_scene, rng):
@@ -198,7 +188,7 @@ def test_correlated_noise_counts_the_neighbours_that_share_an_error(dome_scene, 
         ("short", lambda xy: 2.0 * _smooth_field(xy, 40.0, rng)),
         ("long", lambda xy: 2.0 * _smooth_field(xy, 400.0, rng)),
     ):
-        noisy = _with_error(clean, rec, error)
+        noisy = _with_error(clean, error)
         noise = correlated_noise(rec, noisy, triangulate_tracks(rec, noisy)[0])
         assert len(noise.sigma_px) == rec.num_reg_images()
         assert (noise.cluster >= 0).all()
