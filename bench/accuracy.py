@@ -1,7 +1,9 @@
 """Pose accuracy of colmap-vc against the baselines, on the same images in the same run.
 
 Scenes: `dome` with 1 and with 3 people, `dense`, and `pair` at angles in 30-degree
-bins; priors `clean`, `realistic` and `hard`; several seeds. The priors are anonymous
+bins; priors `clean`, `realistic`, `hard` and `fitted` (the bundled estimator's
+fit to landmarks with the noise measured on pose2sim, whose dense map repeats the
+landmarks' errors as on real photos); several seeds. The priors are anonymous
 and have the detection failures of their level (docs/synthetic.md), as a detector's
 output; the 3-person domes add a bystander and two people standing close (dressed
 alike on odd seeds), and are also run with the true ids given ("ids given": the same
@@ -62,7 +64,12 @@ from colmap_vc.synthetic.gt import (
 
 logger = logging.getLogger("bench.accuracy")
 
-LEVELS = {"clean": "priors_clean", "realistic": "priors", "hard": "priors_hard"}
+LEVELS = {
+    "clean": "priors_clean",
+    "realistic": "priors",
+    "hard": "priors_hard",
+    "fitted": "priors_fitted",
+}
 IDS = " (ids given)"
 """Suffix of a level run on the same priors with the true ids added."""
 MULTI = "dome, 3 people"
@@ -117,7 +124,7 @@ def scene(
                 num_people=people,
                 num_cameras=cameras,
                 pair_angle_deg=angle,
-                extra_noise=("hard", "clean"),
+                extra_noise=("hard", "clean", "fitted"),
                 bystander=crowd,
                 close_pair=crowd,
                 dress_alike=crowd and seed % 2 == 1,
@@ -444,6 +451,15 @@ def main() -> None:
     doc.append("## Table 1 analog: methods on each dataset (realistic priors)\n")
     for group in groups:
         doc += tables(group, "realistic", group)
+    doc.append(
+        "## The bundled estimator's priors (fitted): methods on each dataset\n\n"
+        "The `fitted` level fits the Anny body to landmarks with the noise measured "
+        "on pose2sim and ray-casts the mask on it, as the bundled estimator does on "
+        "photos: its dense map repeats the landmarks' errors (docs/synthetic.md, "
+        '"The fitted level").\n'
+    )
+    for group in groups:
+        doc += tables(group, "fitted", f"{group}, fitted priors")
     doc.append("## Table 2 analog: ablation on the dome, by prior noise\n")
     for group in ("dome, 1 person", MULTI):
         for level in base_levels:

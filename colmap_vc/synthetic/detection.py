@@ -102,6 +102,9 @@ DETECTION_LEVELS: dict[NoiseLevel, DetectionModel] = {
         false_prob=0.25,
     ),
 }
+DETECTION_LEVELS[NoiseLevel.FITTED] = DETECTION_LEVELS[NoiseLevel.REALISTIC]
+"""The bundled estimator's priors (:mod:`colmap_vc.synthetic.fitted`) are found by
+the same kind of detector as the ``realistic`` level's."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)

@@ -269,11 +269,12 @@ def _detect(
     order = rng.permutation(len(kept))
     persons, true_ids = [], []
     for i in order:
-        person = with_appearance(
-            predict_person(bodies, kept[i], camera, level, rng),
-            view.image,
-            bodies.joint_names,
-        )
+        predicted = predict_person(bodies, kept[i], camera, level, rng)
+        if predicted is None:  # the estimator's fit failed: no one reported
+            if kept[i].person_id != FALSE_DETECTION:
+                dropped[kept[i].person_id] = "fit failed"
+            continue
+        person = with_appearance(predicted, view.image, bodies.joint_names)
         true_id = kept[i].person_id
         if not with_ids:
             pid = None
@@ -441,12 +442,13 @@ def generate(
             )
             # Detector order is not identity order: shuffle the people per image.
             order = rng_k.permutation(len(views))
+            clean = [
+                predict_person(bodies, views[i], camera, NoiseLevel.CLEAN, rng_k)
+                for i in order
+            ]
             gt_priors[spec.name] = ImagePrior(
                 image_name=spec.name,
-                persons=tuple(
-                    predict_person(bodies, views[i], camera, NoiseLevel.CLEAN, rng_k)
-                    for i in order
-                ),
+                persons=tuple(p for p in clean if p is not None),
             )
             visible[spec.name] = sorted(v.person_id for v in views)
             _detect(

@@ -40,6 +40,7 @@ class NoiseLevel(enum.StrEnum):
     CLEAN = "clean"
     REALISTIC = "realistic"
     HARD = "hard"
+    FITTED = "fitted"
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -78,6 +79,13 @@ class NoiseModel:
     """Silhouette: erosion or dilation radius, pixels."""
     confidence: tuple[float, float]
     """Reported confidence range."""
+    fitted: bool = False
+    """The bundled estimator's priors instead (:mod:`colmap_vc.synthetic.fitted`):
+    noisy BlazePose landmarks, the Anny body fitted to them, the mask ray-cast on
+    it. Only ``landmark_noise_scale``, ``turn_prob``, ``mask_jitter_px`` and
+    ``confidence`` apply."""
+    landmark_noise_scale: float = 1.0
+    """With ``fitted``: a multiple of the landmark noise measured on pose2sim."""
 
 
 NOISE_LEVELS: dict[NoiseLevel, NoiseModel] = {
@@ -127,6 +135,23 @@ NOISE_LEVELS: dict[NoiseLevel, NoiseModel] = {
         turn_prob=0.2,
         mask_jitter_px=3,
         confidence=(0.4, 0.8),
+    ),
+    NoiseLevel.FITTED: NoiseModel(
+        rotation_deg=(0.0, 0.0),
+        scale_error=(0.0, 0.0),
+        shape_blend=(0.0, 0.0),
+        joint_sigma_deg=0.0,
+        offset_px=0.0,
+        map_slide_px=0.0,
+        lr_flip_prob=0.0,
+        fb_flip_prob=0.0,
+        drop_fraction=0.0,
+        keypoint_sigma_px=0.0,
+        keypoint_swap_prob=0.0,
+        turn_prob=0.0,
+        mask_jitter_px=1,
+        confidence=(0.7, 0.95),
+        fitted=True,
     ),
 }
 
@@ -381,9 +406,23 @@ def predict_person(
     camera: pycolmap.Camera,
     level: NoiseLevel | NoiseModel,
     rng: np.random.Generator,
-) -> PersonPrior:
-    """The predicted prior of one person in one image at a noise level."""
+) -> PersonPrior | None:
+    """The predicted prior of one person in one image at a noise level (None: the
+    ``fitted`` level's fit failed, the estimator reports no one)."""
     model = level if isinstance(level, NoiseModel) else NOISE_LEVELS[NoiseLevel(level)]
+    if model.fitted:
+        from .fitted import fitted_person
+
+        return fitted_person(
+            bodies,
+            view,
+            camera,
+            noise_scale=model.landmark_noise_scale,
+            turn_prob=model.turn_prob,
+            mask=_predict_mask(view, model, rng),
+            confidence=float(rng.uniform(*model.confidence)),
+            rng=rng,
+        )
     verts = _predict_mesh(bodies, view, camera, model, rng)
     turned = model.turn_prob > 0 and rng.random() < model.turn_prob
     if turned:

@@ -1,0 +1,147 @@
+"""The bundled estimator's priors on the synthetic world: noisy landmarks, then its fit.
+
+On real photos the bundled estimator (:mod:`colmap_vc.estimators`) detects
+BlazePose's landmarks, fits the Anny body to them and ray-casts the person's mask
+on the fitted mesh for the dense surface map. Its map therefore repeats the
+landmarks' errors: on pose2sim a surface sample's error correlates 0.7-0.8 with
+the keypoint errors around it, against 0.2-0.3 for the DensePose-like map of the
+``realistic`` level, whose sliding is drawn independently of the keypoints
+(docs/synthetic.md, "The fitted level"). This level runs the same fit on the
+synthetic people:
+
+- the exact BlazePose landmarks of the true body (:func:`landmarks_from_mesh`);
+  with ``turn_prob`` the detector takes a back view for a front view (2 of 20
+  person views on pose2sim_single): the same pixels labelled left for right, 3D
+  points of a body facing the camera;
+- 2D noise per landmark, Gaussian with the spread measured on pose2sim against
+  its calibration (:data:`LANDMARK_SIGMA`, a fraction of the person's height in
+  the image, per coordinate), plus one offset shared by all landmarks of the
+  person in the image (:data:`SHARED_SIGMA`);
+- 3D ("world") landmarks with the same fractions of the body's height in metres
+  (not measured: pose2sim has no 3D truth of the bodies);
+- :func:`~colmap_vc.estimators.fit.fit_body`, then
+  :func:`~colmap_vc.estimators.prior.prior_from_fit` with the predicted mask.
+
+A fit that fails (too few landmarks in the image) reports no person, as the
+estimator does.
+"""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+import pycolmap
+
+from ..structs import PersonPrior
+
+if TYPE_CHECKING:
+    from ..estimators.body import BodyLandmarks, FitTemplate
+    from .bodies import BodyModel
+    from .noise import PersonView
+
+LANDMARK_SIGMA: dict[str, float] = {
+    "nose": 0.011,
+    "left_ear": 0.011,
+    "right_ear": 0.012,
+    "left_shoulder": 0.012,
+    "right_shoulder": 0.011,
+    "left_elbow": 0.018,
+    "right_elbow": 0.024,
+    "left_wrist": 0.022,
+    "right_wrist": 0.022,
+    "left_hip": 0.013,
+    "right_hip": 0.017,
+    "left_knee": 0.015,
+    "right_knee": 0.014,
+    "left_ankle": 0.023,
+    "right_ankle": 0.019,
+    "left_heel": 0.024,
+    "right_heel": 0.026,
+    "left_foot_index": 0.03,
+    "right_foot_index": 0.025,
+}
+"""Spread per coordinate of MediaPipe's landmarks on pose2sim (single and multi,
+73 person views; the composited avatar left out), as a fraction of the person's
+landmark height in the image (its valid landmarks' extent in y), against the
+points the calibrated cameras triangulate, corrected for the fit of a point to
+its own views, each view's median offset taken out (``bench/landmark_noise.py``,
+docs/synthetic.md)."""
+
+SHARED_SIGMA = 0.0092
+"""Spread per coordinate of the offset shared by one person's landmarks in one
+image, as a fraction of the landmark height: the per-view median offset on
+pose2sim spreads 1.05 %, of which independent landmark errors explain 0.51 %
+(``bench/landmark_noise.py``)."""
+
+_TEMPLATES: dict[int, FitTemplate] = {}
+
+
+def _template(bodies: BodyModel) -> FitTemplate:
+    from ..estimators.body import load_template
+
+    key = id(bodies)
+    if key not in _TEMPLATES:
+        _TEMPLATES[key] = load_template(bodies)
+    return _TEMPLATES[key]
+
+
+def _turned(landmarks: BodyLandmarks) -> BodyLandmarks:
+    """The landmarks a detector reports for a person it takes for facing the
+    camera while seen from the back: the same pixels with left and right
+    exchanged, and 3D points of a body facing the camera (depth mirrored about
+    the hips)."""
+    from ..estimators.body import BodyLandmarks
+
+    out = landmarks.relabelled()
+    p3 = out.points_3d.copy()
+    p3[:, 2] *= -1.0  # hip-centred, camera orientation: depth about the hips
+    return BodyLandmarks(xy_img=out.xy_img, points_3d=p3, visibility=out.visibility)
+
+
+def fitted_person(
+    bodies: BodyModel,
+    view: PersonView,
+    camera: pycolmap.Camera,
+    *,
+    noise_scale: float,
+    turn_prob: float,
+    mask: np.ndarray,
+    confidence: float,
+    rng: np.random.Generator,
+) -> PersonPrior | None:
+    """The bundled estimator's prior of one person (module doc); None when its
+    fit fails. ``noise_scale`` multiplies the measured landmark noise."""
+    from ..estimators import body, fit, prior
+
+    template = _template(bodies)
+    exact = body.landmarks_from_mesh(
+        template, view.body_vertices, view.cam_from_body, camera
+    )
+    if turn_prob > 0 and rng.random() < turn_prob:
+        exact = _turned(exact)
+    fitted_idx = template.landmark_idx
+    height_px = float(np.ptp(exact.xy_img[fitted_idx, 1]))
+    height_m = float(np.ptp(view.body_vertices[:, 2]))
+    sigma = np.zeros(body.NUM_LANDMARKS)
+    for name, s in LANDMARK_SIGMA.items():  # loop over 19 names
+        sigma[body.landmark_index(name)] = s
+    sigma *= noise_scale
+    shared = rng.normal(0.0, noise_scale * SHARED_SIGMA * height_px, 2)
+    xy = (
+        exact.xy_img
+        + shared
+        + rng.normal(size=(body.NUM_LANDMARKS, 2)) * (sigma[:, None] * height_px)
+    )
+    p3 = exact.points_3d + rng.normal(size=(body.NUM_LANDMARKS, 3)) * (
+        sigma[:, None] * height_m
+    )
+    landmarks = body.BodyLandmarks(xy_img=xy, points_3d=p3, visibility=exact.visibility)
+    try:
+        fitted = fit.fit_body(landmarks, camera, template)
+    except ValueError:
+        return None
+    person, _ = prior.prior_from_fit(
+        fitted, camera, mask, template=template, confidence=confidence
+    )
+    return person
