@@ -99,6 +99,36 @@ def _turned(landmarks: BodyLandmarks) -> BodyLandmarks:
     return BodyLandmarks(xy_img=out.xy_img, points_3d=p3, visibility=out.visibility)
 
 
+def noisy_landmarks(
+    exact: BodyLandmarks,
+    *,
+    fitted_idx: np.ndarray,
+    height_m: float,
+    noise_scale: float,
+    rng: np.random.Generator,
+) -> BodyLandmarks:
+    """``exact`` with the measured noise (module doc) times ``noise_scale``: per
+    landmark, and one offset shared by all, as fractions of the landmark height
+    in the image (the extent in y of the ``fitted_idx`` landmarks); 3D points with
+    the same fractions of ``height_m``."""
+    from ..estimators.body import NUM_LANDMARKS, BodyLandmarks, landmark_index
+
+    height_px = float(np.ptp(exact.xy_img[fitted_idx, 1]))
+    sigma = np.zeros(NUM_LANDMARKS)
+    for name, s in LANDMARK_SIGMA.items():  # loop over 19 names
+        sigma[landmark_index(name)] = noise_scale * s
+    shared = rng.normal(0.0, noise_scale * SHARED_SIGMA * height_px, 2)
+    xy = (
+        exact.xy_img
+        + shared
+        + rng.normal(size=(NUM_LANDMARKS, 2)) * (sigma[:, None] * height_px)
+    )
+    p3 = exact.points_3d + rng.normal(size=(NUM_LANDMARKS, 3)) * (
+        sigma[:, None] * height_m
+    )
+    return BodyLandmarks(xy_img=xy, points_3d=p3, visibility=exact.visibility)
+
+
 def fitted_person(
     bodies: BodyModel,
     view: PersonView,
@@ -120,23 +150,13 @@ def fitted_person(
     )
     if turn_prob > 0 and rng.random() < turn_prob:
         exact = _turned(exact)
-    fitted_idx = template.landmark_idx
-    height_px = float(np.ptp(exact.xy_img[fitted_idx, 1]))
-    height_m = float(np.ptp(view.body_vertices[:, 2]))
-    sigma = np.zeros(body.NUM_LANDMARKS)
-    for name, s in LANDMARK_SIGMA.items():  # loop over 19 names
-        sigma[body.landmark_index(name)] = s
-    sigma *= noise_scale
-    shared = rng.normal(0.0, noise_scale * SHARED_SIGMA * height_px, 2)
-    xy = (
-        exact.xy_img
-        + shared
-        + rng.normal(size=(body.NUM_LANDMARKS, 2)) * (sigma[:, None] * height_px)
+    landmarks = noisy_landmarks(
+        exact,
+        fitted_idx=template.landmark_idx,
+        height_m=float(np.ptp(view.body_vertices[:, 2])),
+        noise_scale=noise_scale,
+        rng=rng,
     )
-    p3 = exact.points_3d + rng.normal(size=(body.NUM_LANDMARKS, 3)) * (
-        sigma[:, None] * height_m
-    )
-    landmarks = body.BodyLandmarks(xy_img=xy, points_3d=p3, visibility=exact.visibility)
     try:
         fitted = fit.fit_body(landmarks, camera, template)
     except ValueError:
