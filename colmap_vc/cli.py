@@ -44,7 +44,8 @@ class Synth:
     people: int = 1
     """People in the scene (1 to 3)."""
     noise: str = "realistic"
-    """Noise level of the predicted priors: clean, realistic or hard."""
+    """Noise level of the predicted priors: clean, realistic, hard, or fitted (the
+    bundled estimator's fit to landmarks with the noise measured on pose2sim)."""
     extra_noise: tuple[str, ...] = ()
     """Also write priors at these levels into priors_<level>/."""
     cameras: int | None = None

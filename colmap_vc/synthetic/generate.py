@@ -79,7 +79,7 @@ class SynthOptions:
     num_people: int = 1
     """People in the scene (1 to 3)."""
     noise: NoiseLevel = NoiseLevel.REALISTIC
-    """Noise level of the predicted priors (clean, realistic, hard)."""
+    """Noise level of the predicted priors (clean, realistic, hard, fitted)."""
     num_cameras: int | None = None
     """Cameras (dome/dense: 8-16, drawn from the seed when unset; at most 256 dome,
     64 dense)."""
