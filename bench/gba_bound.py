@@ -24,6 +24,11 @@ The last row against the others says where the limit is: in the surface samples'
 errors, which are correlated over their neighbours (the dense map slides smoothly),
 not in their weighting. Writes bench/out/gba_bound.json and the table in
 docs/gba.md (section gba-bound).
+
+With ``--level fitted`` the same scenes' `fitted` priors (the bundled estimator's
+fit to landmarks, docs/synthetic.md) give the first three rows only (the truth's
+rows are calibrated to the realistic keypoints' noise): bench/out/gba_bound_fitted.json
+and section gba-bound-fitted of docs/gba.md.
 """
 
 from __future__ import annotations
@@ -198,13 +203,15 @@ def adjusted(
     return rec
 
 
-def map_scene(scene: str, gba: bool) -> tuple[Path, pycolmap.Reconstruction]:
+def map_scene(
+    scene: str, gba: bool, level: str
+) -> tuple[Path, pycolmap.Reconstruction]:
     """`map` (default, or ``--gba``) on a copy of the accuracy bench's augmented
-    database of the scene's realistic priors."""
-    source = OUT / "runs" / "accuracy" / scene / "realistic" / "augmented_classic0.db"
+    database of the scene's priors of ``level``."""
+    source = OUT / "runs" / "accuracy" / scene / level / "augmented_classic0.db"
     if not source.exists():
         raise SystemExit(f"{source} is missing: run bench/accuracy.py first")
-    work = OUT / "runs" / "gba_bound" / scene / ("gba" if gba else "default")
+    work = OUT / "runs" / "gba_bound" / scene / level / ("gba" if gba else "default")
     shutil.rmtree(work, ignore_errors=True)
     work.mkdir(parents=True)
     db = work / "database.db"
@@ -222,11 +229,14 @@ def map_scene(scene: str, gba: bool) -> tuple[Path, pycolmap.Reconstruction]:
     return db, rec
 
 
-def scene_errors(scene: str, rng: np.random.Generator) -> dict[str, list[float]]:
-    """Pair errors (deg) of every row on one scene."""
+def scene_errors(
+    scene: str, rng: np.random.Generator, level: str
+) -> dict[str, list[float]]:
+    """Pair errors (deg) of every row on one scene (the first three only, but
+    for the realistic priors)."""
     gt = pycolmap.Reconstruction(OUT / "scenes" / scene / "gt" / "sparse")
-    db, base = map_scene(scene, gba=False)
-    _, gba = map_scene(scene, gba=True)
+    db, base = map_scene(scene, False, level)
+    _, gba = map_scene(scene, True, level)
     views = database.read_views(db)
     for i, name in zip(views.image_ids.tolist(), views.image_names, strict=True):
         assert gt.image(i).name == name, "the truth's image ids are the database's"
@@ -246,13 +256,20 @@ def scene_errors(scene: str, rng: np.random.Generator) -> dict[str, list[float]]
         ],
         dtype=np.int8,
     )
-    kept, truth = truth_kept(gt, kt.subset(surface, seen == 1))
     loss = with_loss_scale(KeypointBaOptions(), base).loss_scale_px
     assert loss is not None
     models = {
         "keypoints": adjusted(base, keypoints, None, loss),
         "default": base,
         "gba": gba,
+    }
+    if level != "realistic":
+        return {
+            row: [p.error_deg for p in evaluate_reconstruction(rec, gt).pairs]
+            for row, rec in models.items()
+        }
+    kept, truth = truth_kept(gt, kt.subset(surface, seen == 1))
+    models |= {
         "truth_kept": adjusted(base, keypoints, kept, loss),
         "truth_weighted": adjusted(base, keypoints, kept, loss, weighted=True),
         "truth_similarity": adjusted(
@@ -274,23 +291,33 @@ def scene_errors(scene: str, rng: np.random.Generator) -> dict[str, list[float]]
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--no-docs", action="store_true")
+    parser.add_argument(
+        "--level",
+        choices=("realistic", "fitted"),
+        default="realistic",
+        help="the accuracy bench's priors to start from",
+    )
     args = parser.parse_args()
     setup_logging()
     t0 = time.perf_counter()
     rng = np.random.default_rng(0)
-    errors = {s: scene_errors(s, rng) for group in SCENES.values() for s in group}
+    errors = {
+        s: scene_errors(s, rng, args.level) for group in SCENES.values() for s in group
+    }
+    rows = {r: ROWS[r] for r in next(iter(errors.values()))}
     summary: dict[str, dict[str, dict[str, float]]] = {}
     for group, scenes in SCENES.items():
         summary[group] = {}
-        for row in ROWS:
+        for row in rows:
             e = np.concatenate([errors[s][row] for s in scenes])
             summary[group][row] = {
                 "auc15": 100 * float(pose_auc(e, [15.0])[0]),
                 "median_deg": float(np.median(e)),
             }
     elapsed = time.perf_counter() - t0
+    suffix = "" if args.level == "realistic" else f"_{args.level}"
     write_json(
-        "gba_bound.json",
+        f"gba_bound{suffix}.json",
         {
             "machine": machine(),
             "summary": summary,
@@ -304,7 +331,7 @@ def main() -> None:
         + " |",
         "|---|" + "---|" * len(SCENES),
     ]
-    for row, label in ROWS.items():
+    for row, label in rows.items():
         cells = [
             f"{summary[g][row]['auc15']:.1f} ({summary[g][row]['median_deg']:.2f})"
             for g in SCENES
@@ -313,13 +340,15 @@ def main() -> None:
     lines += [
         "",
         f"Measured at commit {machine()['commit']} by `.venv/bin/python "
-        f"bench/gba_bound.py` ({elapsed / 60:.0f} min; pair errors in "
-        "`bench/out/gba_bound.json`). Seeds 0 and 1 of each scene, pairs pooled.",
+        f"bench/gba_bound.py{'' if not suffix else ' --level ' + args.level}` "
+        f"({elapsed / 60:.0f} min; pair errors in "
+        f"`bench/out/gba_bound{suffix}.json`), {args.level} priors. Seeds 0 and 1 "
+        "of each scene, pairs pooled.",
     ]
     table = "\n".join(lines)
     print(table)
     if not args.no_docs:
-        replace_section(DOCS / "gba.md", "gba-bound", table)
+        replace_section(DOCS / "gba.md", f"gba-bound{suffix.replace('_', '-')}", table)
 
 
 if __name__ == "__main__":

@@ -13,9 +13,10 @@ composited avatar of pose2sim_multi (its landmarks within 0.2 % of its height:
 a render, not a photo) is left out. Also printed: how much a surface sample's
 error follows the keypoints around it (correlation with the keypoint residuals
 interpolated at its pixel, Gaussian weights of 16 px), the reason the `fitted`
-level exists.
+level exists, and the same on the accuracy bench's synthetic scenes at the
+`realistic` and `fitted` levels when they are there.
 
-    .venv/bin/python bench/landmark_noise.py   # after bench/realdata.py
+    .venv/bin/python bench/landmark_noise.py  # after realdata.py (and accuracy.py)
 
 Writes bench/out/landmark_noise.json and the table of docs/synthetic.md.
 """
@@ -47,6 +48,12 @@ logger = logging.getLogger("bench.landmark_noise")
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 INSTANTS = ("t010", "t030", "t050", "t070", "t090")
+SYNTHETIC = [
+    f"acc_{preset}_s{seed}"
+    for preset in ("dome_p1", "dome_p3", "dense_p1")
+    for seed in (0, 1)
+]
+"""The accuracy bench's scenes whose surface-keypoint correlation is compared."""
 AVATAR_FRACTION = 0.002
 """Person views whose median residual is below this fraction of their height are
 a render (pose2sim_multi's composited avatar), not a detector's output."""
@@ -86,13 +93,14 @@ def residuals(rec: pycolmap.Reconstruction, tracks: KeypointTracks) -> np.ndarra
     return r
 
 
-def measure(dbs: list[tuple[Path, Path]]) -> dict:
+def measure(models: list[tuple[Path, pycolmap.Reconstruction]]) -> dict:
+    """Landmark spreads, shared offset and the surface's correlation with the
+    keypoints, over databases each with its true model (same image ids)."""
     names = anny_keypoint_names(load_template().model)
     per_landmark: dict[str, list[np.ndarray]] = {}
     offsets, follow = [], []
     avatar = 0
-    for db, data in dbs:
-        rec = gt_model(db, data)
+    for db, rec in models:
         ids = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
         kp, sf = keypoint_tracks(db, ids), surface_tracks(db, ids)
         assert kp.keys is not None and sf.keys is not None
@@ -166,7 +174,21 @@ def main() -> None:
             if not db.exists():
                 raise SystemExit(f"{db} is missing: run bench/realdata.py first")
             dbs.append((db, args.data / f"pose2sim_{ds}"))
-    out = measure(dbs)
+    out = measure([(db, gt_model(db, data)) for db, data in dbs])
+    synthetic = {}
+    for level in ("realistic", "fitted"):
+        scenes = [
+            (
+                OUT / "runs" / "accuracy" / s / level / "augmented_classic0.db",
+                OUT / "scenes" / s / "gt" / "sparse",
+            )
+            for s in SYNTHETIC
+        ]
+        if all(db.exists() for db, _ in scenes):
+            synthetic[level] = measure(
+                [(db, pycolmap.Reconstruction(gt)) for db, gt in scenes]
+            )["surface_follows_keypoints"]
+    out["synthetic_surface_follows_keypoints"] = synthetic
     shared = float(
         np.sqrt(max(out["offset_sigma"] ** 2 - out["offset_from_independent"] ** 2, 0))
     )
@@ -197,7 +219,16 @@ def main() -> None:
             f"offset of {100 * shared:.2f}% (`SHARED_SIGMA` = "
             f"{100 * SHARED_SIGMA:.2f}%). A surface sample's error correlates "
             f"{out['surface_follows_keypoints']:.2f} with the keypoint errors "
-            "interpolated at its pixel (16 px Gaussian weights).",
+            "interpolated at its pixel (16 px Gaussian weights)"
+            + (
+                "; on the accuracy bench's domes and dense scenes (seeds 0 and 1) "
+                + " and ".join(
+                    f"{v:.2f} with `{k}` priors" for k, v in synthetic.items()
+                )
+                if synthetic
+                else ""
+            )
+            + ".",
         ]
     )
     print(body)
