@@ -71,11 +71,20 @@ def runs(group: str) -> list[tuple[str, list[str]]]:
     return [*pairs, *triples, ("uneven", uneven)]
 
 
-def run_one(ds: str, group: str, name: str, images: list[str], priors: Path) -> dict:
-    """Database, augment, map, eval of one subset."""
+def run_one(
+    ds: str,
+    group: str,
+    name: str,
+    images: list[str],
+    priors: Path,
+    out: str = "subsets",
+    map_args: tuple[str, ...] = (),
+) -> dict:
+    """Database, augment, map (with ``map_args``), eval of one subset, under
+    bench/out/``out``."""
     data = SHARED / f"pose2sim_{ds}"
     cameras, gt = load_calibration(data)
-    work = OUT / "subsets" / ds / group.replace(" ", "_") / name
+    work = OUT / out / ds / group.replace(" ", "_") / name
     shutil.rmtree(work, ignore_errors=True)  # the bench's own output
     db = work / "database.db"
     make_database(data, images, cameras, db)
@@ -86,7 +95,16 @@ def run_one(ds: str, group: str, name: str, images: list[str], priors: Path) -> 
     sparse = work / "sparse"
     args = ["map", str(db), "--image-path", str(data / "images")]
     code_map = (
-        cli.main([*args, "--output-path", str(sparse), "--no-show-progress", *static])
+        cli.main(
+            [
+                *args,
+                "--output-path",
+                str(sparse),
+                "--no-show-progress",
+                *static,
+                *map_args,
+            ]
+        )
         if code_augment == 0
         else None
     )
@@ -131,6 +149,15 @@ def main() -> None:
         "--groups", nargs="+", default=["one instant", "static cameras"]
     )
     parser.add_argument(
+        "--map-args", default="", help="extra `colmap-vc map` arguments"
+    )
+    parser.add_argument(
+        "--out", default="subsets", help="folder under bench/out and JSON name"
+    )
+    parser.add_argument(
+        "--no-docs", action="store_true", help="do not write docs/results.md"
+    )
+    parser.add_argument(
         "--table-only",
         action="store_true",
         help="rewrite the results.md section from bench/out/subsets.json",
@@ -138,9 +165,14 @@ def main() -> None:
     args = parser.parse_args()
     setup_logging()
     if args.table_only:
-        saved = json.loads((OUT / "subsets.json").read_text())
+        saved = json.loads((OUT / f"{args.out}.json").read_text())
         write_table(
-            saved["results"], saved["machine"]["commit"], saved.get("elapsed_s", 0)
+            saved["results"],
+            saved["machine"]["commit"],
+            saved.get("elapsed_s", 0),
+            saved.get("map_args", ""),
+            docs=not args.no_docs,
+            out=args.out,
         )
         return
     t_start = time.perf_counter()
@@ -160,13 +192,34 @@ def main() -> None:
                         f"{priors}: run bench/realdata.py and "
                         "bench/static_cameras.py first"
                     )
-                results[key][name] = run_one(ds, group, name, images, priors)
+                results[key][name] = run_one(
+                    ds,
+                    group,
+                    name,
+                    images,
+                    priors,
+                    args.out,
+                    tuple(args.map_args.split()),
+                )
     elapsed = time.perf_counter() - t_start
     write_json(
-        "subsets.json",
-        {"machine": machine(), "results": results, "elapsed_s": elapsed},
+        f"{args.out}.json",
+        {
+            "machine": machine(),
+            "map_args": args.map_args,
+            "results": results,
+            "elapsed_s": elapsed,
+        },
     )
-    write_table(results, machine()["commit"], elapsed)
+    table = write_table(
+        results,
+        machine()["commit"],
+        elapsed,
+        args.map_args,
+        docs=not args.no_docs,
+        out=args.out,
+    )
+    print(table)
 
 
 def _rows(results: dict[str, dict[str, dict]]) -> list[tuple[str, str, list[dict]]]:
@@ -184,8 +237,15 @@ def _rows(results: dict[str, dict[str, dict]]) -> list[tuple[str, str, list[dict
 
 
 def write_table(
-    results: dict[str, dict[str, dict]], commit: str, elapsed: float
-) -> None:
+    results: dict[str, dict[str, dict]],
+    commit: str,
+    elapsed: float,
+    map_args: str = "",
+    docs: bool = True,
+    out: str = "subsets",
+) -> str:
+    """The table of the runs (into docs/results.md's "subsets" section with
+    ``docs``)."""
     lines = [
         "| data | subsets | runs | `map` finished | registered | pairs "
         "| AUC@15 | AUC@30 | AUC@45 | median pair error (deg) |",
@@ -204,19 +264,23 @@ def write_table(
         )
     lines += [
         "",
-        f"Measured at commit {commit} by `.venv/bin/python bench/subsets.py` "
-        f"({elapsed / 60:.0f} min; per run in `bench/out/subsets.json`). "
+        f"Measured at commit {commit} by `.venv/bin/python bench/subsets.py"
+        f"{f' --map-args={map_args}' if map_args else ''}"
+        f"{f' --out {out}' if out != 'subsets' else ''}` "
+        f"({elapsed / 60:.0f} min; per run in `bench/out/{out}.json`). "
         "*one instant*: every 2- and 3-camera subset of each of the five instants; "
         "*static cameras*: every camera pair over two instants, every 3-camera "
         "subset over five, one capture with uneven instants per camera; pairs of "
         "one instant against the calibration, pooled over runs; a pair with an "
         "unregistered image counts as 180 deg.",
     ]
-    replace_section(
-        DOCS / "results.md",
-        "subsets",
-        "## Real photos: fewer cameras, fewer instants\n\n" + "\n".join(lines),
-    )
+    if docs:
+        replace_section(
+            DOCS / "results.md",
+            "subsets",
+            "## Real photos: fewer cameras, fewer instants\n\n" + "\n".join(lines),
+        )
+    return "\n".join(lines)
 
 
 if __name__ == "__main__":
