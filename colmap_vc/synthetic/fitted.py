@@ -3,11 +3,11 @@
 On real photos the bundled estimator (:mod:`colmap_vc.estimators`) detects
 BlazePose's landmarks, fits the Anny body to them and ray-casts the person's mask
 on the fitted mesh for the dense surface map. Its map therefore repeats the
-landmarks' errors: on pose2sim a surface sample's error correlates 0.7-0.8 with
-the keypoint errors around it, against 0.2-0.3 for the DensePose-like map of the
-``realistic`` level, whose sliding is drawn independently of the keypoints
-(docs/synthetic.md, "The fitted level"). This level runs the same fit on the
-synthetic people:
+landmarks' errors: on pose2sim a surface sample's error correlates 0.74 with
+the keypoint errors around it, against 0.26 for the DensePose-like map of the
+``realistic`` level, whose sliding is drawn independently of the keypoints, and
+0.68 for this level (``bench/landmark_noise.py``; docs/synthetic.md, "The fitted
+level"). This level runs the same fit on the synthetic people:
 
 - the exact BlazePose landmarks of the true body (:func:`landmarks_from_mesh`);
   with ``turn_prob`` the detector takes a back view for a front view (2 of 20
@@ -74,16 +74,16 @@ image, as a fraction of the landmark height: the per-view median offset on
 pose2sim spreads 1.05 %, of which independent landmark errors explain 0.51 %
 (``bench/landmark_noise.py``)."""
 
-_TEMPLATES: dict[int, FitTemplate] = {}
+_TEMPLATE: list[tuple[BodyModel, FitTemplate]] = []
+"""The fit's template of the last body model asked for (a scene uses one)."""
 
 
 def _template(bodies: BodyModel) -> FitTemplate:
     from ..estimators.body import load_template
 
-    key = id(bodies)
-    if key not in _TEMPLATES:
-        _TEMPLATES[key] = load_template(bodies)
-    return _TEMPLATES[key]
+    if not _TEMPLATE or _TEMPLATE[0][0] is not bodies:
+        _TEMPLATE[:] = [(bodies, load_template(bodies))]
+    return _TEMPLATE[0][1]
 
 
 def _turned(landmarks: BodyLandmarks) -> BodyLandmarks:
