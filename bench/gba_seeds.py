@@ -11,7 +11,8 @@ how many scenes it wins.
     .venv/bin/python bench/gba_seeds.py [--seeds 0 1 ... 11] [--levels realistic fitted]
         [--people 1] [--no-docs]
 
-Writes bench/out/gba_seeds.json and the table of docs/gba.md (section gba-seeds).
+Writes bench/out/gba_seeds.json (gba_seeds_p<people>.json with --people) and the
+table of docs/gba.md (section gba-seeds, gba-seeds-p<people>).
 """
 
 from __future__ import annotations
@@ -177,7 +178,7 @@ def main() -> None:
         )
     elapsed = time.perf_counter() - t0
     write_json(
-        "gba_seeds.json",
+        "gba_seeds.json" if args.people == 1 else f"gba_seeds_p{args.people}.json",
         {
             "machine": machine(),
             "seeds": args.seeds,
@@ -196,7 +197,9 @@ def main() -> None:
             "",
             f"Measured at commit {machine()['commit']} by `.venv/bin/python "
             f"bench/gba_seeds.py --seeds {seeds} --people {args.people}` "
-            f"({elapsed / 60:.0f} min): {args.people}-person domes, VCs only, one "
+            f"({elapsed / 60:.0f} min): {args.people}-person domes"
+            + (" (a bystander, two people close)" if args.people >= 3 else "")
+            + ", VCs only, one "
             "scene per seed and level; differences are paired per scene, ± one "
             "standard error, (scenes won - lost). A wrong camera: registered, "
             f"with a median pair error above {WRONG_DEG:.0f} deg.",
@@ -204,7 +207,8 @@ def main() -> None:
     )
     print(body)
     if not args.no_docs:
-        replace_section(DOCS / "gba.md", "gba-seeds", body)
+        section = "gba-seeds" if args.people == 1 else f"gba-seeds-p{args.people}"
+        replace_section(DOCS / "gba.md", section, body)
 
 
 if __name__ == "__main__":
