@@ -93,27 +93,32 @@ def residuals(rec: pycolmap.Reconstruction, tracks: KeypointTracks) -> np.ndarra
     return r
 
 
+def _view(
+    tracks: KeypointTracks, res: np.ndarray, image_id: int, person: int | None
+) -> tuple[np.ndarray, np.ndarray]:
+    """Observations of ``person`` (None: anyone) in ``image_id`` with a residual,
+    and the identity of every observation."""
+    assert tracks.keys is not None
+    who = tracks.keys[tracks.track, 0]
+    sel = (tracks.image_id == image_id) & np.isfinite(res).all(axis=1)
+    return (sel if person is None else sel & (who == person)), who[sel]
+
+
 def measure(models: list[tuple[Path, pycolmap.Reconstruction]]) -> dict:
     """Landmark spreads, shared offset and the surface's correlation with the
     keypoints, over databases each with its true model (same image ids)."""
     names = anny_keypoint_names(load_template().model)
-    per_landmark: dict[str, list[np.ndarray]] = {}
-    offsets, follow = [], []
+    landmarks, errors, offsets, follow = [], [], [], []
     avatar = 0
     for db, rec in models:
         ids = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
         kp, sf = keypoint_tracks(db, ids), surface_tracks(db, ids)
-        assert kp.keys is not None and sf.keys is not None
+        assert kp.keys is not None
         rk, rs = residuals(rec, kp), residuals(rec, sf)
-        who_k, who_s = kp.keys[kp.track, 0], sf.keys[sf.track, 0]
         landmark = kp.keys[kp.track, 1] - MatchingOptions().num_samples
         for image_id in ids.tolist():  # loop over images
-            for person in np.unique(who_k[kp.image_id == image_id]).tolist():
-                k = (
-                    (kp.image_id == image_id)
-                    & (who_k == person)
-                    & np.isfinite(rk).all(axis=1)
-                )
+            for person in np.unique(_view(kp, rk, image_id, None)[1]).tolist():
+                k = _view(kp, rk, image_id, person)[0]
                 if k.sum() < 8:
                     continue
                 height = float(np.ptp(kp.xy_img[k, 1]))
@@ -121,15 +126,10 @@ def measure(models: list[tuple[Path, pycolmap.Reconstruction]]) -> dict:
                 if np.median(np.abs(r)) < AVATAR_FRACTION:
                     avatar += 1
                     continue
-                offset = np.median(r, axis=0)
-                offsets.append(offset)
-                for lm, e in zip(landmark[k].tolist(), r - offset, strict=True):
-                    per_landmark.setdefault(names[lm], []).append(e)
-                s = (
-                    (sf.image_id == image_id)
-                    & (who_s == person)
-                    & np.isfinite(rs).all(axis=1)
-                )
+                offsets.append(np.median(r, axis=0))
+                landmarks.append(landmark[k])
+                errors.append(r - offsets[-1])
+                s = _view(sf, rs, image_id, person)[0]
                 if s.sum() < 20:
                     continue
                 d2 = ((sf.xy_img[s, None] - kp.xy_img[None, k]) ** 2).sum(axis=-1)
@@ -137,11 +137,11 @@ def measure(models: list[tuple[Path, pycolmap.Reconstruction]]) -> dict:
                 near = w.sum(axis=1) > 0.3
                 interp = (w[near] @ rk[k]) / w[near].sum(axis=1)[:, None]
                 follow.append(np.c_[rs[s][near], interp] / height)
-    spread = {
-        n: float(MAD_TO_SIGMA * np.median(np.abs(np.asarray(v))))
-        for n, v in per_landmark.items()
-    }
-    counts = {n: len(v) for n, v in per_landmark.items()}
+    lm, err = np.concatenate(landmarks), np.concatenate(errors)
+    spread, counts = {}, {}
+    for k in np.unique(lm).tolist():  # loop over a few dozen landmarks
+        spread[names[k]] = float(MAD_TO_SIGMA * np.median(np.abs(err[lm == k])))
+        counts[names[k]] = int((lm == k).sum())
     off = np.asarray(offsets)
     median_of_independent = float(
         np.median(list(spread.values())) * 1.2533 / np.sqrt(len(spread))
