@@ -94,6 +94,22 @@ class AssociationOptions:
     min_link_margin: float = 0.25
     """A link is kept only when the best assignment holding it beats the best one
     without it by this log-likelihood (else the pair abstains for that person)."""
+    miss_prob: float = 0.1
+    """Probability that the detector misses a person in view: inside the frame, as
+    large as where it was found, overlapped by no one (colmap_vc.visibility_check).
+    MediaPipe found every such person on pose2sim; the synthetic detectors miss
+    3% (realistic) and 8% (hard) at random. 0.1 bounds both."""
+    unseen_alpha: float = 0.05
+    """A detection places its person where it is not seen when a real person would
+    be missed as often with a probability below this (binomial tail at
+    ``miss_prob``); an identity is left out when half of its detections do."""
+    inside_frac: float = 0.9
+    """A person is in view of an image when this share of its placed mesh's
+    vertices falls inside the frame: a person cut by the frame is often missed."""
+    hidden_overlap: float = 0.3
+    """...and when no person detected there covers more than this share of its
+    placed box (it may be hidden behind them, or be them, placed with the layout
+    noise)."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)

@@ -55,6 +55,7 @@ from .verification import (
     cycle_inconsistent_pairs,
     inverted,
 )
+from .visibility_check import check_visibility
 
 logger = logging.getLogger(__name__)
 
@@ -130,6 +131,9 @@ class VirtualCorrespondences:
     associations: list[database.PersonAssociation]
     reports: list[PairReport]
     skipped_images: dict[str, str]  # image name -> reason
+    left_out_people: dict[str, str] = field(default_factory=dict)
+    """Identities the visibility check unlinked (their detections, "image #index",
+    -> reason)."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -144,6 +148,9 @@ class AugmentSummary:
     pairs: list[PairReport]
     timings_s: dict[str, float]
     write: database.WriteSummary | None
+    left_out_people: dict[str, str] = field(default_factory=dict)
+    """Identities the visibility check unlinked (their detections, "image #index",
+    -> reason)."""
 
     @property
     def num_verified_pairs(self) -> int:
@@ -270,7 +277,12 @@ def compute_virtual_correspondences(
             links += pair_links_
             cache.update({(n1, n2, a, b): m for (a, b), m in matches.items()})
         timings["link"] = time.perf_counter() - t0
-        association = associate(cues, links, options.association)
+        association, unseen = check_visibility(
+            associate(cues, links, options.association),
+            cues,
+            cameras,
+            options.association,
+        )
         timings["associate"] = time.perf_counter() - t0
 
         t0 = time.perf_counter()
@@ -368,6 +380,10 @@ def compute_virtual_correspondences(
         associations=associations,
         reports=reports,
         skipped_images=skipped,
+        left_out_people={
+            " ".join(f"{d.key[0]} #{d.key[1]}" for d in u.detections): u.reason
+            for u in unseen
+        },
     )
 
 
@@ -470,6 +486,7 @@ def run(
         num_images=len(views.image_names),
         num_images_with_priors=len(with_priors),
         skipped_images=vcs.skipped_images,
+        left_out_people=vcs.left_out_people,
         pairs=vcs.reports,
         timings_s=timings,
         write=write,

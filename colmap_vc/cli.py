@@ -388,6 +388,8 @@ def _run_augment(cmd: Augment) -> int:
     sys.stdout.write("\n".join(lines) + "\n")
     for name, reason in summary.skipped_images.items():
         sys.stdout.write(f"skipped {name}: {reason}\n")
+    for person, reason in summary.left_out_people.items():
+        sys.stdout.write(f"left out {person}: {reason}\n")
     stages = ", ".join(f"{k} {v:.2f} s" for k, v in summary.timings_s.items())
     sys.stdout.write(
         f"{summary.num_verified_pairs}/{len(summary.pairs)} pairs verified; {stages}"
