@@ -132,8 +132,8 @@ class VirtualCorrespondences:
     reports: list[PairReport]
     skipped_images: dict[str, str]  # image name -> reason
     left_out_people: dict[str, str] = field(default_factory=dict)
-    """Identities the visibility check unlinked (their detections, "image #index",
-    -> reason)."""
+    """Identities the visibility check unlinked ("person N", as the association
+    numbered them, -> reason with their detections)."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -149,8 +149,8 @@ class AugmentSummary:
     timings_s: dict[str, float]
     write: database.WriteSummary | None
     left_out_people: dict[str, str] = field(default_factory=dict)
-    """Identities the visibility check unlinked (their detections, "image #index",
-    -> reason)."""
+    """Identities the visibility check unlinked ("person N", as the association
+    numbered them, -> reason with their detections)."""
 
     @property
     def num_verified_pairs(self) -> int:
@@ -380,10 +380,7 @@ def compute_virtual_correspondences(
         associations=associations,
         reports=reports,
         skipped_images=skipped,
-        left_out_people={
-            " ".join(f"{d.key[0]} #{d.key[1]}" for d in u.detections): u.reason
-            for u in unseen
-        },
+        left_out_people={f"person {u.identity}": u.reason for u in unseen},
     )
 
 

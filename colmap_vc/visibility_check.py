@@ -109,10 +109,7 @@ class UnseenPerson:
             f"{d.in_view - 1} ({', '.join(d.missed) or '-'}, P = {d.tail:.1e})"
             for d in self.detections
         ]
-        return (
-            f"person {self.identity} is not seen where its detections place it in "
-            f"view: {'; '.join(parts)}"
-        )
+        return f"not seen where its detections place it in view: {'; '.join(parts)}"
 
 
 def _unseen(
@@ -211,7 +208,9 @@ def check_visibility(
         failed = sum(d.tail < options.unseen_alpha for d in judged)
         if failed and 2 * failed >= len(judged):
             left_out.append(UnseenPerson(identity=x, detections=tuple(judged)))
-            logger.info("visibility check: %s: left out", left_out[-1].reason)
+            logger.info(
+                "visibility check: person %d left out, %s", x, left_out[-1].reason
+            )
     if not left_out:
         return association, []
     gone = {u.identity for u in left_out}
