@@ -95,10 +95,12 @@ class AssociationOptions:
     """A link is kept only when the best assignment holding it beats the best one
     without it by this log-likelihood (else the pair abstains for that person)."""
     miss_prob: float = 0.1
-    """Probability that the detector misses a person in view: inside the frame, as
-    large as where it was found, overlapped by no one (colmap_vc.visibility_check).
-    MediaPipe found every such person on pose2sim; the synthetic detectors miss
-    3% (realistic) and 8% (hard) at random. 0.1 bounds both."""
+    """Least probability that the detector misses a person in view: inside the
+    frame, as large as where it was found, overlapped by no one
+    (colmap_vc.visibility_check, which measures it on the other people and takes
+    the larger). MediaPipe found every such person on pose2sim; the synthetic
+    detectors miss 3% (realistic) and 8% (hard) at random, more when small. 0.1
+    bounds the random misses."""
     unseen_alpha: float = 0.05
     """A detection places its person where it is not seen when a real person would
     be missed as often with a probability below this (binomial tail at

@@ -167,6 +167,31 @@ def test_real_people_hidden_cut_or_missed_once_stay() -> None:
     assert result is association
 
 
+def test_the_miss_rate_comes_from_the_other_people() -> None:
+    """A real person missed in plain sight in 4 of its 9 views looks like no one to
+    a detector that misses 10% (left out, as designed); when the detector misses
+    the others as often, the same misses are its noise, and the person stays."""
+    cams = _ring(10)
+    world = {
+        "A": np.zeros(3),
+        "B": np.array([1.5, 0.0, 0.5]),
+        "C": np.array([-1.5, 0.0, -0.5]),
+    }
+    missed_b = {(f"img{k}.jpg", "B") for k in (1, 3, 5, 7)}
+    missed_others = {(f"img{k}.jpg", "A") for k in (0, 2, 4, 6)} | {
+        (f"img{k}.jpg", "C") for k in (1, 4, 6, 9)
+    }
+    cameras = {n: _CAMERA for n in cams}
+    cues, association, ident = _associated(_detect(world, cams, frozenset(missed_b)))
+    _, left_out = check_visibility(association, cues, cameras, _OPTIONS)
+    assert [u.identity for u in left_out] == [ident["B"]]
+    assert left_out[0].miss_prob == _OPTIONS.miss_prob
+    cues, association, _ = _associated(
+        _detect(world, cams, frozenset(missed_b | missed_others))
+    )
+    assert check_visibility(association, cues, cameras, _OPTIONS)[1] == []
+
+
 def test_without_cameras_or_a_second_person_nothing_is_judged() -> None:
     cams = _ring(6)
     detections = _false_bodies(cams, ["img0.jpg", "img1.jpg", "img3.jpg"])
