@@ -62,8 +62,9 @@ def check_few_view_people(
     Two images can always be bent until the rays of a person linked across them
     meet. Under the robust loss a false detection linked across two images (the
     synthetic scenes' random bodies) first stays an outlier (63 px against 4 px
-    on the demo scene), and is left out here, before a camera check re-poses a
-    camera and lets it bend the model. pose2sim_single's second detected
+    on the demo scene, before augment's visibility check left that one out,
+    colmap_vc.visibility_check), and is left out here, before a camera check
+    re-poses a camera and lets it bend the model. pose2sim_single's second detected
     "person", seen by two cameras, fits (1.5-5 px) and stays: it is worth 25
     points of AUC@15 at t010. A phantom the mapper already bent the model to
     fits too and stays (the dense 1-person scene s0)."""
