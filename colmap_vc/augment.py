@@ -55,7 +55,7 @@ from .verification import (
     cycle_inconsistent_pairs,
     inverted,
 )
-from .visibility_check import check_visibility
+from .visibility_check import UnseenPerson, check_visibility
 
 logger = logging.getLogger(__name__)
 
@@ -131,9 +131,8 @@ class VirtualCorrespondences:
     associations: list[database.PersonAssociation]
     reports: list[PairReport]
     skipped_images: dict[str, str]  # image name -> reason
-    left_out_people: dict[str, str] = field(default_factory=dict)
-    """Identities the visibility check unlinked ("person N", as the association
-    numbered them, -> reason with their detections)."""
+    unseen_people: tuple[UnseenPerson, ...] = ()
+    """Identities the visibility check unlinked (colmap_vc.visibility_check)."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -380,7 +379,7 @@ def compute_virtual_correspondences(
         associations=associations,
         reports=reports,
         skipped_images=skipped,
-        left_out_people={f"person {u.identity}": u.reason for u in unseen},
+        unseen_people=tuple(unseen),
     )
 
 
@@ -474,6 +473,11 @@ def run(
                 "colmap_vc_version": __version__,
                 "priors": str(Path(priors_path).resolve()),
                 "options": outputs.jsonable(asdict(options)),
+                "left_out_people": {
+                    f"{d.key[0]} #{d.key[1]}": d.reason
+                    for u in vcs.unseen_people
+                    for d in u.detections
+                },
             },
         )
         timings["write"] = time.perf_counter() - t0
@@ -483,7 +487,7 @@ def run(
         num_images=len(views.image_names),
         num_images_with_priors=len(with_priors),
         skipped_images=vcs.skipped_images,
-        left_out_people=vcs.left_out_people,
+        left_out_people={f"person {u.identity}": u.reason for u in vcs.unseen_people},
         pairs=vcs.reports,
         timings_s=timings,
         write=write,

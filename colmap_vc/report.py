@@ -276,6 +276,18 @@ def _pairs_section(ctx: _Context) -> str:
     return "".join(parts)
 
 
+def _who(name: str, identity: dict[int, int], unseen: dict[str, str]) -> str:
+    """Caption of an image's people: each one's identity, or why it was left out
+    (``unseen``: "image #person" -> the visibility check's reason)."""
+    return ", ".join(
+        f"person {p} = identity {i}"
+        if i >= 0
+        else f"person {p} left out"
+        + (f": {unseen[f'{name} #{p}']}" if f"{name} #{p}" in unseen else "")
+        for p, i in sorted(identity.items())
+    )
+
+
 def _people_section(ctx: _Context) -> str:
     """Each image's VC keypoints coloured by their person's identity."""
     from colmap_vc import report_people
@@ -284,11 +296,14 @@ def _people_section(ctx: _Context) -> str:
     identities = person_identities(
         database.read_person_associations(ctx.inputs.database_path)
     )
+    unseen = database.read_run_info(ctx.inputs.database_path).get("left_out_people", {})
     parts = [
         '<section id="people"><h2>People</h2>',
         '<p class="sub">VC keypoints coloured by the identity the association '
         "gave their person: the same colour is the same person in every view; grey "
-        "marks a person left out (no confident partner in any other view).</p>",
+        "marks a person left out (no confident partner in any other view, or, as "
+        "said under the image, not seen where it would be in view: augment's "
+        "visibility check).</p>",
     ]
     if not ctx.vc_keypoints:
         parts.append(missing("No virtual correspondences: no people to show."))
@@ -304,13 +319,10 @@ def _people_section(ctx: _Context) -> str:
             identity,
             ctx.inputs.panel_height_px,
         )
-        who = ", ".join(
-            f"person {p} = identity {i}" if i >= 0 else f"person {p} left out"
-            for p, i in sorted(
-                {
-                    int(p): int(i) for p, i in zip(kp.person_id, identity, strict=True)
-                }.items()
-            )
+        who = _who(
+            ctx.names[image_id],
+            dict(zip(kp.person_id.tolist(), identity.tolist(), strict=True)),
+            unseen,
         )
         parts.append(
             f'<figure class="person" data-image="{image_id}">'

@@ -97,6 +97,13 @@ class DetectionVisibility:
     in_view: int  # images that should show it, its own included
     tail: float  # binomial tail of that many misses for a real person
 
+    @property
+    def reason(self) -> str:
+        return (
+            f"not found in {len(self.missed)} of the {self.in_view - 1} other images "
+            f"it is in view of ({', '.join(self.missed) or '-'}, P = {self.tail:.1e})"
+        )
+
 
 @dataclasses.dataclass(frozen=True, kw_only=True, slots=True)
 class UnseenPerson:
@@ -108,11 +115,7 @@ class UnseenPerson:
 
     @property
     def reason(self) -> str:
-        parts = [
-            f"{d.key[0]} #{d.key[1]} not found in {len(d.missed)} of "
-            f"{d.in_view - 1} ({', '.join(d.missed) or '-'}, P = {d.tail:.1e})"
-            for d in self.detections
-        ]
+        parts = [f"{d.key[0]} #{d.key[1]} {d.reason}" for d in self.detections]
         return (
             f"not seen where its detections place it in view (a real person is "
             f"missed there with p = {self.miss_prob:.2f}): {'; '.join(parts)}"

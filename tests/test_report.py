@@ -501,3 +501,17 @@ def test_gravity_section_draws_the_lines_of_each_measured_camera(
         ReportInputs(**common, model_path=run.model_path), tmp_path / "without.html"
     ).read_text(encoding="utf-8")
     assert 'id="gravity"' not in without and 'href="#gravity"' not in without
+
+
+def test_people_caption_says_why_a_person_was_left_out() -> None:
+    """A person the visibility check left out carries its reason under the image;
+    one the association found no partner for is just left out."""
+    from colmap_vc.report import _who
+
+    unseen = {"cam02.jpg #1": "not found in 2 of the 2 other images it is in view of"}
+    who = _who("cam02.jpg", {1: -1, 0: 0, 2: -1}, unseen)
+    assert who == (
+        "person 0 = identity 0, person 1 left out: not found in 2 of the 2 other "
+        "images it is in view of, person 2 left out"
+    )
+    assert _who("cam03.jpg", {1: -1}, unseen) == "person 1 left out"

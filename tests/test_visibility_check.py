@@ -2,12 +2,18 @@
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 import pycolmap
+import pytest
 from scipy.spatial.transform import Rotation
 from scipy.stats import binom
 
+from colmap_vc import cli, database
 from colmap_vc.association import Association, AssociationOptions, PersonCue
+from colmap_vc.synthetic import SynthOptions, generate
+from colmap_vc.synthetic.gt import gt_persons_path, read_gt_persons
 from colmap_vc.visibility_check import _box, _overlap, binomial_tail, check_visibility
 
 _RNG = np.random.default_rng(5)
@@ -118,7 +124,7 @@ def test_a_false_person_linked_across_images_is_left_out() -> None:
         # Each places the body in view of 3 more images that do not show it.
         assert len(d.missed) == 3 and d.in_view == 4
         assert d.tail == binomial_tail(3, 4, _OPTIONS.miss_prob) < _OPTIONS.unseen_alpha
-    assert "img0.jpg #1 not found in 3 of 3" in left_out[0].reason
+    assert "img0.jpg #1 not found in 3 of the 3 other images" in left_out[0].reason
     # Its detections are unassociated, its links gone; the real person stays,
     # numbered 0.
     for c, (_, who, _) in zip(cues, detections, strict=True):
@@ -200,3 +206,35 @@ def test_without_cameras_or_a_second_person_nothing_is_judged() -> None:
     detections += _detect({"A": np.zeros(3)}, cams)
     cues, association, _ = _associated(detections)
     assert check_visibility(association, cues, {})[1] == []
+
+
+def test_augment_leaves_the_default_domes_false_identity_out(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    """`make demo`'s scene: a false detection in cam02 and another in cam11, which
+    the association links as one person. `augment` leaves both out, says so, and
+    the database's run info keeps why for the report; the real person stays."""
+    scene = tmp_path / "scene"
+    generate("dome", scene, SynthOptions(seed=0, num_people=1, sift=False))
+    truth = read_gt_persons(gt_persons_path(scene)).images
+    false = {(n, k) for n, ids in truth.items() for k, i in enumerate(ids) if i < 0}
+    assert len(false) >= 2  # the scene tests what it says
+    db = scene / "database.db"
+    assert cli.main(["augment", str(db), "--priors", str(scene / "priors")]) == 0
+    printed = capsys.readouterr().out
+    assert "left out person" in printed and "not seen where its detections" in printed
+    left = database.read_run_info(db)["left_out_people"]
+    left_keys = {(k.split(" #")[0], int(k.split(" #")[1])) for k in left}
+    assert left_keys and left_keys <= false
+    views = database.read_views(db)
+    name = dict(zip(views.image_ids.tolist(), views.image_names, strict=True))
+    linked = {
+        (name[image_id], person)
+        for p in database.read_person_associations(db)
+        for image_id, person in (
+            (p.image_id1, p.person_id1),
+            (p.image_id2, p.person_id2),
+        )
+    }
+    assert not linked & false  # no false detection keeps a link
+    assert linked  # the real person does
