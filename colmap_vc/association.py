@@ -103,8 +103,9 @@ class AssociationOptions:
     bounds the random misses."""
     unseen_alpha: float = 0.05
     """A detection places its person where it is not seen when a real person would
-    be missed as often with a probability below this (binomial tail at
-    ``miss_prob``); an identity is left out when half of its detections do."""
+    be missed as often with a probability below this (binomial tail at the
+    detector's miss rate); an identity is left out when half of its detections
+    do. 0: no visibility check."""
     inside_frac: float = 0.9
     """A person is in view of an image when this share of its placed mesh's
     vertices falls inside the frame: a person cut by the frame is often missed."""
