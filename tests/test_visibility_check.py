@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -125,6 +126,8 @@ def test_a_false_person_linked_across_images_is_left_out() -> None:
         assert len(d.missed) == 3 and d.in_view == 4
         assert d.tail == binomial_tail(3, 4, _OPTIONS.miss_prob) < _OPTIONS.unseen_alpha
     assert "img0.jpg #1 not found in 3 of the 3 other images" in left_out[0].reason
+    off = dataclasses.replace(_OPTIONS, unseen_alpha=0.0)
+    assert check_visibility(association, cues, cameras, off) == (association, [])
     # Its detections are unassociated, its links gone; the real person stays,
     # numbered 0.
     for c, (_, who, _) in zip(cues, detections, strict=True):
