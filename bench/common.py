@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import argparse
 import json
 import logging
 import os
@@ -13,6 +14,20 @@ from pathlib import Path
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out"
 DOCS = ROOT / "docs"
+
+
+def add_pose2sim_run_args(
+    parser: argparse.ArgumentParser, out: str, out_help: str
+) -> None:
+    """The pose2sim benches' shared options: extra `map` arguments, the output
+    folder under bench/out (and JSON name), and whether to write docs."""
+    parser.add_argument(
+        "--map-args", default="", help="extra `colmap-vc map` arguments"
+    )
+    parser.add_argument("--out", default=out, help=out_help)
+    parser.add_argument(
+        "--no-docs", action="store_true", help="do not write docs/results.md"
+    )
 
 
 def setup_logging() -> None:

@@ -28,7 +28,16 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
-from common import DOCS, OUT, ROOT, machine, replace_section, setup_logging, write_json
+from common import (
+    DOCS,
+    OUT,
+    ROOT,
+    add_pose2sim_run_args,
+    machine,
+    replace_section,
+    setup_logging,
+    write_json,
+)
 
 from colmap_vc import cli, database
 from colmap_vc.evaluation import (
@@ -261,16 +270,8 @@ def main() -> None:
     parser.add_argument(
         "--priors-args", default="", help="extra `colmap-vc priors` arguments"
     )
-    parser.add_argument(
-        "--map-args", default="", help="extra `colmap-vc map` arguments"
-    )
-    parser.add_argument(
-        "--out",
-        default="realdata",
-        help="folder under bench/out (priors cache) and name of the JSON",
-    )
-    parser.add_argument(
-        "--no-docs", action="store_true", help="do not write docs/results.md"
+    add_pose2sim_run_args(
+        parser, "realdata", "folder under bench/out (priors cache) and name of the JSON"
     )
     args = parser.parse_args()
     setup_logging()

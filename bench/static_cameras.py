@@ -27,6 +27,7 @@ import numpy as np
 from common import (
     DOCS,
     OUT,
+    add_pose2sim_run_args,
     machine,
     replace_section,
     setup_logging,
@@ -137,12 +138,8 @@ def _rotation_deg(a: np.ndarray, b: np.ndarray) -> float:
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--datasets", nargs="+", default=["single", "multi"])
-    parser.add_argument("--out", default="static_cameras")
-    parser.add_argument(
-        "--map-args", default="", help="extra `colmap-vc map` arguments"
-    )
-    parser.add_argument(
-        "--no-docs", action="store_true", help="do not write docs/results.md"
+    add_pose2sim_run_args(
+        parser, "static_cameras", "folder under bench/out and JSON name"
     )
     args = parser.parse_args()
     setup_logging()

@@ -33,7 +33,15 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
+from common import (
+    DOCS,
+    OUT,
+    add_pose2sim_run_args,
+    machine,
+    replace_section,
+    setup_logging,
+    write_json,
+)
 from realdata import INSTANTS, SHARED, _largest_model, load_calibration, make_database
 from realdata import pooled as pool
 
@@ -148,15 +156,7 @@ def main() -> None:
     parser.add_argument(
         "--groups", nargs="+", default=["one instant", "static cameras"]
     )
-    parser.add_argument(
-        "--map-args", default="", help="extra `colmap-vc map` arguments"
-    )
-    parser.add_argument(
-        "--out", default="subsets", help="folder under bench/out and JSON name"
-    )
-    parser.add_argument(
-        "--no-docs", action="store_true", help="do not write docs/results.md"
-    )
+    add_pose2sim_run_args(parser, "subsets", "folder under bench/out and JSON name")
     parser.add_argument(
         "--table-only",
         action="store_true",
