@@ -16,9 +16,8 @@ On pose2sim (docs/results.md) the pass converges to the same poses from the mapp
 model, from the keypoint-only model and from the ground truth.
 
 With ``surface_tracks`` (``map --gba``) the pass is the generalized bundle
-adjustment instead: after the camera check every surface observation of the
-mapper's model joins its track by identity, weighted by its measured spread and
-correlation with its neighbours
+adjustment instead: after the camera check every surface VC joins its track by
+identity, weighted by its measured spread and correlation with its neighbours
 (:func:`add_weighted_surface`, docs/gba.md).
 """
 
@@ -50,7 +49,6 @@ from .keypoint_tracks import (
     vc_identities,
 )
 from .people_check import check_few_view_people, unchecked_people
-from .structs import IndexArray
 
 logger = logging.getLogger(__name__)
 
@@ -84,10 +82,8 @@ class KeypointBaOptions:
     34.5 with 24; docs/results.md)."""
     surface_tracks: bool = False
     """The generalized BA (``map --gba``): after the camera check, the budget's
-    surface points give way to every surface observation of the mapper's model
-    (its inliers: what COLMAP's own bundle adjustment would adjust) regrouped into
-    its track by identity (person, template sample: one X1 shared by all views),
-    each observation weighted by
+    surface points give way to every surface VC in its track by identity (person,
+    template sample: one X1 shared by all views), each observation weighted by
     its spread and its correlation with its neighbours in the image, relative to
     the keypoints (:mod:`colmap_vc.gba.correlated`), instead of the fixed budget
     ``surface_per_image`` under the keypoints' loss. Off by default: against the
@@ -206,14 +202,12 @@ def keypoint_bundle_adjustment(
     keypoint_obs = keypoint_observations(tracks)
     delete_points_observing(out, keypoint_obs)  # rebuilt below, by identity
     vc_only, vc_obs, dropped = [], [], 0
-    surface_in_model: list[tuple[int, int]] = []
     for point_id, point in out.points3D.items():  # loop over the model's points
         els = [(e.image_id, e.point2D_idx) for e in point.track.elements]
         if any(idx < num_classic[i] for i, idx in els):
             continue
         vc_only.append(point_id)
         vc_obs.append(len(els))
-        surface_in_model.extend(els)
     per_image = (
         options.surface_per_image_two_view
         if len(registered) == 2
@@ -275,12 +269,7 @@ def keypoint_bundle_adjustment(
             if out.exists_point3D(point_id):
                 out.delete_point3D(point_id)
         people, num_surface = add_weighted_surface(
-            database_path,
-            out,
-            tracks,
-            options,
-            exchanged,
-            in_model=np.array(surface_in_model, dtype=np.int64).reshape(-1, 2),
+            database_path, out, tracks, options, exchanged
         )
         bundle_adjust_inplace(out, loss, people)
     summary = KeypointBaSummary(
@@ -313,8 +302,6 @@ def add_weighted_surface(
     tracks: KeypointTracks,
     options: KeypointBaOptions,
     exchanged: frozenset[tuple[int, int]] = frozenset(),
-    *,
-    in_model: IndexArray | None = None,
 ) -> tuple[PeopleNoise, int]:
     """Add the surface tracks by identity of ``rec``'s posed images (its poses
     adjusted by the keypoints ``tracks``) and weigh each surface observation
@@ -322,22 +309,11 @@ def add_weighted_surface(
     (:mod:`colmap_vc.gba.correlated`) -> (the people's noise, surface
     observations added). The keypoints keep COLMAP's loss and unit weight.
     People in ``exchanged`` ((image, identity); -1: the whole image) add none:
-    their mesh was turned front to back. ``in_model`` ((N, 2) image id, point2D
-    index): only those surface observations join their tracks, the ones the
-    mapper's model held (its inliers); None: every surface VC."""
+    their mesh was turned front to back."""
     registered = np.array(
         sorted(i for i, im in rec.images.items() if im.has_pose), dtype=np.int64
     )
     surface = surface_tracks(database_path, registered)
-    if in_model is not None and surface.num_tracks:
-        width = int(max(surface.point2D_idx.max(), in_model[:, 1].max(initial=0))) + 1
-        surface = subset(
-            surface,
-            np.isin(
-                surface.image_id * width + surface.point2D_idx,
-                in_model[:, 0] * width + in_model[:, 1],
-            ),
-        )
     if surface.num_tracks and tracks.num_tracks and tracks.keys is not None:
         # Only people whose keypoints the checks kept in that image, and not
         # those exchanged there.

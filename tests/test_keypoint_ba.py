@@ -21,7 +21,6 @@ from colmap_vc.keypoint_tracks import (
     mirrored_tracks,
     person_identities,
     subset,
-    surface_tracks,
     triangulate_tracks,
 )
 from colmap_vc.mapping.up import keypoint_noise_px
@@ -633,51 +632,3 @@ def test_gba_weights_surface_tracks_by_their_noise(dome_scene, mapped, rng):
     ]
     assert np.median(lengths) > 2  # tracks by identity, not two-view matches
     assert evaluate_reconstruction(out, gt).median_error_deg < 1.0
-
-
-def test_gba_adjusts_the_surface_observations_the_model_holds(mapped):
-    """The GBA regroups the surface observations of the mapper's model (its
-    inliers) into tracks by identity: a surface VC the model does not hold (here:
-    every other VC-only point deleted) does not come back, though its database
-    track by identity has it."""
-    db, rec = mapped
-    views = database.read_views(db)
-    first_vc = dict(
-        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
-    )
-    model = pycolmap.Reconstruction(rec)
-    vc_only = sorted(
-        pid
-        for pid, p in model.points3D.items()
-        if all(e.point2D_idx >= first_vc[e.image_id] for e in p.track.elements)
-    )
-    removed: set[tuple[int, int]] = set()
-    for pid in vc_only[::2]:
-        removed |= {
-            (e.image_id, e.point2D_idx) for e in model.point3D(pid).track.elements
-        }
-        model.delete_point3D(pid)
-    held = {
-        (e.image_id, e.point2D_idx)
-        for pid in vc_only[1::2]
-        for e in model.point3D(pid).track.elements
-    }
-    registered = np.array(sorted(model.reg_image_ids()), dtype=np.int64)
-    in_db = surface_tracks(db, registered)
-    in_db_obs = set(
-        zip(in_db.image_id.tolist(), in_db.point2D_idx.tolist(), strict=True)
-    )
-    assert removed & in_db_obs  # the database's tracks hold what was removed
-
-    _, summary = keypoint_bundle_adjustment(
-        db, model, KeypointBaOptions(surface_tracks=True)
-    )
-    assert summary.people is not None
-    weighted = {
-        (i, int(k))
-        for i, v in summary.people.sigma_px.items()
-        for k in np.flatnonzero(np.isfinite(v))
-    }
-    assert len(weighted) > 100
-    assert not weighted & removed
-    assert weighted <= held & in_db_obs
