@@ -27,13 +27,19 @@ import argparse
 import logging
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pycolmap
 from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
 from realdata import load_calibration
 
 from colmap_vc import database
-from colmap_vc.estimators.body import anny_keypoint_names, load_template
+from colmap_vc.estimators import blazepose
+from colmap_vc.estimators.body import (
+    anny_keypoint_names,
+    landmark_index,
+    load_template,
+)
 from colmap_vc.gba.noise import MAD_TO_SIGMA, reprojection_residuals
 from colmap_vc.keypoint_tracks import (
     KeypointTracks,
@@ -42,7 +48,7 @@ from colmap_vc.keypoint_tracks import (
     triangulate_tracks,
 )
 from colmap_vc.matching import MatchingOptions
-from colmap_vc.synthetic.fitted import LANDMARK_SIGMA, SHARED_SIGMA
+from colmap_vc.synthetic.fitted import LANDMARK_SIGMA, LANDMARK_SIGMA_3D, SHARED_SIGMA
 
 logger = logging.getLogger("bench.landmark_noise")
 
@@ -57,6 +63,9 @@ SYNTHETIC = [
 AVATAR_FRACTION = 0.002
 """Person views whose median residual is below this fraction of their height are
 a render (pose2sim_multi's composited avatar), not a detector's output."""
+MIN_3D_LANDMARKS = 15
+"""Person views with fewer landmarks that three calibrated views triangulate are
+left out of the 3D measurement (their extent, the unit, would be a part's)."""
 
 
 def gt_model(db: Path, data: Path) -> pycolmap.Reconstruction:
@@ -160,6 +169,102 @@ def measure(models: list[tuple[Path, pycolmap.Reconstruction]]) -> dict:
     }
 
 
+def _kabsch(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """The rotation R minimising |R a_i - b_i| (points as rows)."""
+    u, _, vt = np.linalg.svd(b.T @ a)
+    d = np.sign(np.linalg.det(u @ vt))
+    return u @ np.diag([1.0, 1.0, d]) @ vt
+
+
+def measure_3d(dbs: list[tuple[Path, Path]]) -> dict:
+    """MediaPipe's 3D ("world") landmarks against the landmarks the calibrated
+    cameras triangulate, in each camera's frame with the hips' midpoint as origin
+    (the frame the fit reads them in): spread per landmark and axis (x, y, depth)
+    as a fraction of the view's landmark extent, and how much of it one rotation
+    per view explains. BlazePose runs again on each image; its person is the one
+    whose 2D landmarks lie on the database person's keypoints."""
+    names = anny_keypoint_names(load_template().model)
+    errors: dict[str, list[np.ndarray]] = {}
+    angles, turned_out = [], []
+    views = avatar = 0
+    with blazepose.BlazePose() as model:
+        for db, data in dbs:
+            rec = gt_model(db, data)
+            ids = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
+            kp = keypoint_tracks(db, ids)
+            assert kp.keys is not None
+            X, seen_by = triangulate_tracks(rec, kp)
+            rk = residuals(rec, kp)
+            who = kp.keys[kp.track, 0]
+            landmark = kp.keys[kp.track, 1] - MatchingOptions().num_samples
+            for image_id in ids.tolist():  # loop over images
+                image = rec.image(image_id)
+                bgr = cv2.imread(str(data / "images" / image.name))
+                found = blazepose.find_people(
+                    model, cv2.cvtColor(bgr, cv2.COLOR_BGR2RGB)
+                )
+                T = image.cam_from_world().matrix()
+                for person in np.unique(who[kp.image_id == image_id]).tolist():
+                    sel = (kp.image_id == image_id) & (who == person)
+                    height = float(np.ptp(kp.xy_img[sel, 1]))
+                    if np.nanmedian(np.abs(rk[sel])) / height < AVATAR_FRACTION:
+                        avatar += 1
+                        continue
+                    sel &= seen_by[kp.track] >= 3
+                    nm = [names[k] for k in landmark[sel]]
+                    if len(nm) < MIN_3D_LANDMARKS or not {
+                        "left_hip",
+                        "right_hip",
+                    } <= set(nm):
+                        continue
+                    idx = np.array([landmark_index(n) for n in nm])
+                    gap = [
+                        float(
+                            np.median(
+                                np.linalg.norm(
+                                    r.landmarks.xy_img[idx] - kp.xy_img[sel], axis=1
+                                )
+                            )
+                        )
+                        for r in found
+                    ]
+                    if not gap or min(gap) > 0.05 * height:
+                        continue
+                    hips = [nm.index("left_hip"), nm.index("right_hip")]
+                    truth = X[kp.track[sel]] @ T[:, :3].T + T[:, 3]
+                    truth -= truth[hips].mean(axis=0)
+                    mp = found[int(np.argmin(gap))].landmarks.points_3d[idx]
+                    mp = mp - mp[hips].mean(axis=0)
+                    extent = float(np.ptp(truth, axis=0).max())
+                    R = _kabsch(mp, truth)
+                    angles.append(
+                        float(
+                            np.degrees(np.arccos(np.clip((np.trace(R) - 1) / 2, -1, 1)))
+                        )
+                    )
+                    turned_out.append((mp @ R.T - truth) / extent)
+                    for n, e in zip(nm, (mp - truth) / extent, strict=True):
+                        errors.setdefault(n, []).append(e)
+                    views += 1
+    spread = {
+        n: (MAD_TO_SIGMA * np.median(np.abs(np.array(e)), axis=0)).tolist()
+        for n, e in errors.items()
+    }
+    every = np.concatenate([np.array(e) for e in errors.values()])
+    rotated = np.concatenate(turned_out)
+    return {
+        "landmark_sigma_3d": spread,
+        "landmark_count_3d": {n: len(e) for n, e in errors.items()},
+        "person_views_3d": views,
+        "avatar_views_left_out_3d": avatar,
+        "sigma_3d_all": (MAD_TO_SIGMA * np.median(np.abs(every), axis=0)).tolist(),
+        "sigma_3d_after_rotation": (
+            MAD_TO_SIGMA * np.median(np.abs(rotated), axis=0)
+        ).tolist(),
+        "rotation_deg_quartiles": np.quantile(angles, [0.25, 0.5, 0.75]).tolist(),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=DATA)
@@ -175,6 +280,7 @@ def main() -> None:
                 raise SystemExit(f"{db} is missing: run bench/realdata.py first")
             dbs.append((db, args.data / f"pose2sim_{ds}"))
     out = measure([(db, gt_model(db, data)) for db, data in dbs])
+    out.update(measure_3d(dbs))
     synthetic = {}
     for level in ("realistic", "fitted"):
         scenes = [
@@ -195,21 +301,34 @@ def main() -> None:
     out["shared_sigma"] = shared
     write_json("landmark_noise.json", {"machine": machine(), **out})
     rows = [
-        "| landmark | measured | `LANDMARK_SIGMA` | views |",
-        "|---|---|---|---|",
+        "| landmark | 2D measured | `LANDMARK_SIGMA` | views "
+        "| 3D measured (x / y / depth) | `LANDMARK_SIGMA_3D` | views |",
+        "|---|---|---|---|---|---|---|",
     ]
+
+    def xyz(v: list[float] | tuple[float, ...] | None) -> str:
+        return "-" if v is None else " / ".join(f"{100 * a:.1f}%" for a in v)
+
     for name, s in out["landmark_sigma"].items():
         rows.append(
             f"| {name} | {100 * s:.1f}% | {100 * LANDMARK_SIGMA.get(name, np.nan):.1f}%"
-            f" | {out['landmark_count'][name]} |"
+            f" | {out['landmark_count'][name]}"
+            f" | {xyz(out['landmark_sigma_3d'].get(name))}"
+            f" | {xyz(LANDMARK_SIGMA_3D.get(name))}"
+            f" | {out['landmark_count_3d'].get(name, 0)} |"
         )
     body = "\n".join(
         [
             f"Measured by `.venv/bin/python bench/landmark_noise.py` at commit "
             f"{machine()['commit']} over {out['person_views']} person views of "
             f"pose2sim_single and pose2sim_multi ({out['avatar_views_left_out']} "
-            "views of the composited avatar left out). Spread per coordinate, as "
-            "a fraction of the person's landmark height in the image:",
+            "views of the composited avatar left out). 2D: spread per coordinate, "
+            "as a fraction of the person's landmark height in the image. 3D: "
+            "MediaPipe's world landmarks against the landmarks the calibrated "
+            "cameras triangulate (three views or more), per camera axis with the "
+            "hips' midpoint as origin, as a fraction of the view's landmark extent "
+            f"({out['person_views_3d']} person views with at least "
+            f"{MIN_3D_LANDMARKS} such landmarks):",
             "",
             *rows,
             "",
@@ -229,6 +348,15 @@ def main() -> None:
                 else ""
             )
             + ".",
+            "",
+            "In 3D, all landmarks together spread "
+            f"{xyz(out['sigma_3d_all'])} (x / y / depth); the rotation that "
+            "best aligns each view's world landmarks with the truth (median "
+            f"{out['rotation_deg_quartiles'][1]:.0f} deg, quartiles "
+            f"{out['rotation_deg_quartiles'][0]:.0f}-"
+            f"{out['rotation_deg_quartiles'][2]:.0f}) leaves "
+            f"{xyz(out['sigma_3d_after_rotation'])}: the error is the landmarks' "
+            "own, mostly in depth, not one turn of the body.",
         ]
     )
     print(body)

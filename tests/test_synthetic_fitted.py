@@ -19,6 +19,7 @@ from colmap_vc.synthetic import SynthOptions, generate, noise
 from colmap_vc.synthetic.bodies import joints, load_bodies, pose_body
 from colmap_vc.synthetic.fitted import (
     LANDMARK_SIGMA,
+    LANDMARK_SIGMA_3D,
     SHARED_SIGMA,
     fitted_person,
     noisy_landmarks,
@@ -113,7 +114,6 @@ def test_landmark_noise_has_the_measured_spread_and_shared_offset(person):
                 noisy_landmarks(
                     exact,
                     fitted_idx=template.landmark_idx,
-                    height_m=1.7,
                     noise_scale=1.0,
                     rng=rng,
                 ).xy_img
@@ -192,3 +192,38 @@ def test_a_fitted_scene_writes_the_estimators_priors(tmp_path):
         assert p.template == "anny" and len(p.keypoints_xy) == 24
         assert p.surface_map is not None and len(p.surface_map) > 0
         assert 0.7 <= p.confidence <= 0.95
+
+
+def test_world_landmarks_have_the_measured_spread_per_axis(person):
+    """The 3D landmarks the fit reads err per camera axis as measured on pose2sim
+    (a fraction of the landmarks' 3D extent), most in depth, and independently of
+    the 2D offset; landmarks the fit ignores keep their exact position."""
+    bodies, view, _ = person
+    template = load_template(bodies)
+    exact = landmarks_from_mesh(
+        template, view.body_vertices, view.cam_from_body, CAMERA
+    )
+    extent = np.ptp(exact.points_3d[template.landmark_idx], axis=0).max()
+    assert 1.3 < extent < 2.0  # a standing adult's landmarks, metres
+    rng = np.random.default_rng(2)
+    draws = (
+        np.stack(
+            [
+                noisy_landmarks(
+                    exact, fitted_idx=template.landmark_idx, noise_scale=1.0, rng=rng
+                ).points_3d
+                - exact.points_3d
+                for _ in range(4000)
+            ]
+        )
+        / extent
+    )  # (draws, 33, 3)
+    for name in ("nose", "left_wrist", "right_hip"):
+        k = landmark_index(name)
+        assert draws[:, k].std(axis=0) == pytest.approx(
+            LANDMARK_SIGMA_3D[name], rel=0.06
+        )
+    wrist = draws[:, landmark_index("left_wrist")]
+    assert wrist[:, 2].std() > 2 * wrist[:, 0].std()  # depth errs most
+    unfitted = np.setdiff1d(np.arange(NUM_LANDMARKS), template.landmark_idx)
+    assert np.abs(draws[:, unfitted]).max() == 0.0

@@ -17,8 +17,9 @@ level"). This level runs the same fit on the synthetic people:
   its calibration (:data:`LANDMARK_SIGMA`, a fraction of the person's height in
   the image, per coordinate), plus one offset shared by all landmarks of the
   person in the image (:data:`SHARED_SIGMA`);
-- 3D ("world") landmarks with the same fractions of the body's height in metres
-  (not measured: pose2sim has no 3D truth of the bodies);
+- 3D ("world") landmarks with the noise measured on pose2sim per landmark and
+  camera axis (:data:`LANDMARK_SIGMA_3D`, a fraction of the landmarks' extent),
+  against the landmarks its calibrated cameras triangulate;
 - :func:`~colmap_vc.estimators.fit.fit_body`, then
   :func:`~colmap_vc.estimators.prior.prior_from_fit` with the predicted mask.
 
@@ -68,6 +69,34 @@ points the calibrated cameras triangulate, corrected for the fit of a point to
 its own views, each view's median offset taken out (``bench/landmark_noise.py``,
 docs/synthetic.md)."""
 
+LANDMARK_SIGMA_3D: dict[str, tuple[float, float, float]] = {
+    "left_shoulder": (0.032, 0.051, 0.093),
+    "right_shoulder": (0.032, 0.038, 0.083),
+    "left_elbow": (0.055, 0.051, 0.092),
+    "right_elbow": (0.050, 0.039, 0.122),
+    "left_wrist": (0.060, 0.063, 0.177),
+    "right_wrist": (0.058, 0.050, 0.129),
+    "left_hip": (0.028, 0.013, 0.022),
+    "right_hip": (0.028, 0.013, 0.022),
+    "left_knee": (0.043, 0.050, 0.067),
+    "right_knee": (0.043, 0.035, 0.096),
+    "left_ankle": (0.053, 0.072, 0.145),
+    "right_ankle": (0.063, 0.072, 0.168),
+    "nose": (0.041, 0.059, 0.105),
+    "left_ear": (0.045, 0.053, 0.109),
+    "right_ear": (0.039, 0.051, 0.103),
+    "left_heel": (0.059, 0.068, 0.126),
+    "right_heel": (0.060, 0.074, 0.176),
+    "left_foot_index": (0.067, 0.065, 0.135),
+    "right_foot_index": (0.077, 0.058, 0.165),
+}
+"""Spread of MediaPipe's 3D ("world") landmarks on pose2sim per camera axis (x,
+y, depth), as a fraction of the view's landmark extent, against the landmarks the
+calibrated cameras triangulate, with the hips' midpoint as origin (56 person
+views; ``bench/landmark_noise.py``, docs/synthetic.md). Three to eight times the
+2D fractions, and largest in depth: one rotation per view explains little of it
+(all landmarks: 4.2 / 4.8 / 10.4%, 3.8 / 4.6 / 8.8% after it)."""
+
 SHARED_SIGMA = 0.0092
 """Spread per coordinate of the offset shared by one person's landmarks in one
 image, as a fraction of the landmark height: the per-view median offset on
@@ -103,29 +132,32 @@ def noisy_landmarks(
     exact: BodyLandmarks,
     *,
     fitted_idx: np.ndarray,
-    height_m: float,
     noise_scale: float,
     rng: np.random.Generator,
 ) -> BodyLandmarks:
     """``exact`` with the measured noise (module doc) times ``noise_scale``: per
     landmark, and one offset shared by all, as fractions of the landmark height
-    in the image (the extent in y of the ``fitted_idx`` landmarks); 3D points with
-    the same fractions of ``height_m``."""
+    in the image (the extent in y of the ``fitted_idx`` landmarks); 3D points per
+    landmark and camera axis as fractions of the ``fitted_idx`` landmarks' 3D
+    extent (:data:`LANDMARK_SIGMA_3D`)."""
     from ..estimators.body import NUM_LANDMARKS, BodyLandmarks, landmark_index
 
     height_px = float(np.ptp(exact.xy_img[fitted_idx, 1]))
+    extent_m = float(np.ptp(exact.points_3d[fitted_idx], axis=0).max())
     sigma = np.zeros(NUM_LANDMARKS)
+    sigma_3d = np.zeros((NUM_LANDMARKS, 3))
     for name, s in LANDMARK_SIGMA.items():  # loop over 19 names
         sigma[landmark_index(name)] = noise_scale * s
+        sigma_3d[landmark_index(name)] = noise_scale * np.asarray(
+            LANDMARK_SIGMA_3D[name]
+        )
     shared = rng.normal(0.0, noise_scale * SHARED_SIGMA * height_px, 2)
     xy = (
         exact.xy_img
         + shared
         + rng.normal(size=(NUM_LANDMARKS, 2)) * (sigma[:, None] * height_px)
     )
-    p3 = exact.points_3d + rng.normal(size=(NUM_LANDMARKS, 3)) * (
-        sigma[:, None] * height_m
-    )
+    p3 = exact.points_3d + rng.normal(size=(NUM_LANDMARKS, 3)) * sigma_3d * extent_m
     return BodyLandmarks(xy_img=xy, points_3d=p3, visibility=exact.visibility)
 
 
@@ -153,7 +185,6 @@ def fitted_person(
     landmarks = noisy_landmarks(
         exact,
         fitted_idx=template.landmark_idx,
-        height_m=float(np.ptp(view.body_vertices[:, 2])),
         noise_scale=noise_scale,
         rng=rng,
     )
