@@ -48,7 +48,12 @@ from colmap_vc.keypoint_tracks import (
     triangulate_tracks,
 )
 from colmap_vc.matching import MatchingOptions
-from colmap_vc.synthetic.fitted import LANDMARK_SIGMA, LANDMARK_SIGMA_3D, SHARED_SIGMA
+from colmap_vc.synthetic.fitted import (
+    CORRELATION_2D_3D,
+    LANDMARK_SIGMA,
+    LANDMARK_SIGMA_3D,
+    SHARED_SIGMA,
+)
 
 logger = logging.getLogger("bench.landmark_noise")
 
@@ -185,7 +190,7 @@ def measure_3d(dbs: list[tuple[Path, Path]]) -> dict:
     whose 2D landmarks lie on the database person's keypoints."""
     names = anny_keypoint_names(load_template().model)
     errors: dict[str, list[np.ndarray]] = {}
-    angles, turned_out = [], []
+    angles, turned_out, pairs_2d_3d = [], [], []
     views = avatar = 0
     with blazepose.BlazePose() as model:
         for db, data in dbs:
@@ -243,6 +248,17 @@ def measure_3d(dbs: list[tuple[Path, Path]]) -> dict:
                         )
                     )
                     turned_out.append((mp @ R.T - truth) / extent)
+                    # The same landmarks' 2D error (against the truth projected),
+                    # beside the 3D one across the image: each less its view's median.
+                    world = X[kp.track[sel]] @ T[:, :3].T + T[:, 3]
+                    best = found[int(np.argmin(gap))].landmarks.xy_img[idx]
+                    e2 = (
+                        best - rec.camera(image.camera_id).img_from_cam(world)
+                    ) / height
+                    e3 = (mp - truth)[:, :2] / extent
+                    pairs_2d_3d.append(
+                        np.c_[e2 - np.median(e2, axis=0), e3 - np.median(e3, axis=0)]
+                    )
                     for n, e in zip(nm, (mp - truth) / extent, strict=True):
                         errors.setdefault(n, []).append(e)
                     views += 1
@@ -251,6 +267,10 @@ def measure_3d(dbs: list[tuple[Path, Path]]) -> dict:
         for n, e in errors.items()
     }
     every = np.concatenate([np.array(e) for e in errors.values()])
+    both = np.concatenate(pairs_2d_3d)
+    spreads = MAD_TO_SIGMA * np.median(np.abs(both), axis=0)
+    inl = (np.abs(both) <= 3.0 * spreads).all(axis=1)  # a wild landmark is not noise
+    follow = [float(np.corrcoef(both[inl, a], both[inl, 2 + a])[0, 1]) for a in (0, 1)]
     rotated = np.concatenate(turned_out)
     return {
         "landmark_sigma_3d": spread,
@@ -262,6 +282,7 @@ def measure_3d(dbs: list[tuple[Path, Path]]) -> dict:
             MAD_TO_SIGMA * np.median(np.abs(rotated), axis=0)
         ).tolist(),
         "rotation_deg_quartiles": np.quantile(angles, [0.25, 0.5, 0.75]).tolist(),
+        "correlation_2d_3d": follow,
     }
 
 
@@ -356,7 +377,12 @@ def main() -> None:
             f"{out['rotation_deg_quartiles'][0]:.0f}-"
             f"{out['rotation_deg_quartiles'][2]:.0f}) leaves "
             f"{xyz(out['sigma_3d_after_rotation'])}: the error is the landmarks' "
-            "own, mostly in depth, not one turn of the body.",
+            "own, mostly in depth, not one turn of the body. Across the image it "
+            "follows the same landmark's 2D error: correlation "
+            f"{out['correlation_2d_3d'][0]:.2f} in x and "
+            f"{out['correlation_2d_3d'][1]:.2f} in y (each view's median "
+            "offset taken out; `CORRELATION_2D_3D` = "
+            f"{CORRELATION_2D_3D[0]:.2f}, {CORRELATION_2D_3D[1]:.2f}).",
         ]
     )
     print(body)

@@ -18,6 +18,7 @@ from colmap_vc.priors import read_priors
 from colmap_vc.synthetic import SynthOptions, generate, noise
 from colmap_vc.synthetic.bodies import joints, load_bodies, pose_body
 from colmap_vc.synthetic.fitted import (
+    CORRELATION_2D_3D,
     LANDMARK_SIGMA,
     LANDMARK_SIGMA_3D,
     SHARED_SIGMA,
@@ -196,8 +197,9 @@ def test_a_fitted_scene_writes_the_estimators_priors(tmp_path):
 
 def test_world_landmarks_have_the_measured_spread_per_axis(person):
     """The 3D landmarks the fit reads err per camera axis as measured on pose2sim
-    (a fraction of the landmarks' 3D extent), most in depth, and independently of
-    the 2D offset; landmarks the fit ignores keep their exact position."""
+    (a fraction of the landmarks' 3D extent), most in depth, across the image
+    with the landmark's own 2D error as measured there; landmarks the fit
+    ignores keep their exact position."""
     bodies, view, _ = person
     template = load_template(bodies)
     exact = landmarks_from_mesh(
@@ -206,18 +208,14 @@ def test_world_landmarks_have_the_measured_spread_per_axis(person):
     extent = np.ptp(exact.points_3d[template.landmark_idx], axis=0).max()
     assert 1.3 < extent < 2.0  # a standing adult's landmarks, metres
     rng = np.random.default_rng(2)
-    draws = (
-        np.stack(
-            [
-                noisy_landmarks(
-                    exact, fitted_idx=template.landmark_idx, noise_scale=1.0, rng=rng
-                ).points_3d
-                - exact.points_3d
-                for _ in range(4000)
-            ]
+    noisy = [
+        noisy_landmarks(
+            exact, fitted_idx=template.landmark_idx, noise_scale=1.0, rng=rng
         )
-        / extent
-    )  # (draws, 33, 3)
+        for _ in range(4000)
+    ]
+    draws = np.stack([n.points_3d - exact.points_3d for n in noisy]) / extent
+    flat = np.stack([n.xy_img - exact.xy_img for n in noisy])  # (draws, 33, 2)
     for name in ("nose", "left_wrist", "right_hip"):
         k = landmark_index(name)
         assert draws[:, k].std(axis=0) == pytest.approx(
@@ -225,5 +223,15 @@ def test_world_landmarks_have_the_measured_spread_per_axis(person):
         )
     wrist = draws[:, landmark_index("left_wrist")]
     assert wrist[:, 2].std() > 2 * wrist[:, 0].std()  # depth errs most
+    # Across the image it follows the landmark's own 2D error (not the offset
+    # all landmarks share), in depth it does not.
+    k = landmark_index("left_wrist")
+    own = LANDMARK_SIGMA["left_wrist"] / np.hypot(
+        LANDMARK_SIGMA["left_wrist"], SHARED_SIGMA
+    )
+    for axis in (0, 1):
+        r = np.corrcoef(flat[:, k, axis], draws[:, k, axis])[0, 1]
+        assert r == pytest.approx(CORRELATION_2D_3D[axis] * own, abs=0.05)
+    assert abs(np.corrcoef(flat[:, k, 0], draws[:, k, 2])[0, 1]) < 0.05
     unfitted = np.setdiff1d(np.arange(NUM_LANDMARKS), template.landmark_idx)
     assert np.abs(draws[:, unfitted]).max() == 0.0

@@ -19,7 +19,8 @@ level"). This level runs the same fit on the synthetic people:
   person in the image (:data:`SHARED_SIGMA`);
 - 3D ("world") landmarks with the noise measured on pose2sim per landmark and
   camera axis (:data:`LANDMARK_SIGMA_3D`, a fraction of the landmarks' extent),
-  against the landmarks its calibrated cameras triangulate;
+  against the landmarks its calibrated cameras triangulate, following the 2D
+  error as measured there (:data:`CORRELATION_2D_3D`);
 - :func:`~colmap_vc.estimators.fit.fit_body`, then
   :func:`~colmap_vc.estimators.prior.prior_from_fit` with the predicted mask.
 
@@ -97,6 +98,11 @@ views; ``bench/landmark_noise.py``, docs/synthetic.md). Three to eight times the
 2D fractions, and largest in depth: one rotation per view explains little of it
 (all landmarks: 4.2 / 4.8 / 10.4%, 3.8 / 4.6 / 8.8% after it)."""
 
+CORRELATION_2D_3D: tuple[float, float] = (0.47, 0.29)
+"""Correlation of a landmark's 3D error across the image (x, y) with its 2D error
+on pose2sim, each view's median offset taken out (``bench/landmark_noise.py``):
+MediaPipe's two outputs come from one network and err together."""
+
 SHARED_SIGMA = 0.0092
 """Spread per coordinate of the offset shared by one person's landmarks in one
 image, as a fraction of the landmark height: the per-view median offset on
@@ -139,7 +145,8 @@ def noisy_landmarks(
     landmark, and one offset shared by all, as fractions of the landmark height
     in the image (the extent in y of the ``fitted_idx`` landmarks); 3D points per
     landmark and camera axis as fractions of the ``fitted_idx`` landmarks' 3D
-    extent (:data:`LANDMARK_SIGMA_3D`)."""
+    extent (:data:`LANDMARK_SIGMA_3D`), across the image correlated with the
+    landmark's own 2D error (:data:`CORRELATION_2D_3D`)."""
     from ..estimators.body import NUM_LANDMARKS, BodyLandmarks, landmark_index
 
     height_px = float(np.ptp(exact.xy_img[fitted_idx, 1]))
@@ -152,12 +159,15 @@ def noisy_landmarks(
             LANDMARK_SIGMA_3D[name]
         )
     shared = rng.normal(0.0, noise_scale * SHARED_SIGMA * height_px, 2)
-    xy = (
-        exact.xy_img
-        + shared
-        + rng.normal(size=(NUM_LANDMARKS, 2)) * (sigma[:, None] * height_px)
+    z2 = rng.normal(size=(NUM_LANDMARKS, 2))
+    xy = exact.xy_img + shared + z2 * (sigma[:, None] * height_px)
+    # Across the image the 3D error follows the landmark's own 2D error.
+    rho = np.array([*CORRELATION_2D_3D, 0.0])
+    z3 = (
+        rng.normal(size=(NUM_LANDMARKS, 3)) * np.sqrt(1.0 - rho**2)
+        + rho * np.c_[z2, np.zeros(NUM_LANDMARKS)]
     )
-    p3 = exact.points_3d + rng.normal(size=(NUM_LANDMARKS, 3)) * sigma_3d * extent_m
+    p3 = exact.points_3d + z3 * sigma_3d * extent_m
     return BodyLandmarks(xy_img=xy, points_3d=p3, visibility=exact.visibility)
 
 
