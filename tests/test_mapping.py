@@ -195,6 +195,32 @@ def test_a_camera_that_contradicts_the_meshes_is_left_out(dome_scene):
     assert np.isfinite(T).all()
 
 
+def test_the_meshes_do_not_judge_two_cameras_classic_matches_place(dome_scene):
+    """The `auto` mapper's check of a model against the meshes skips the pairs of
+    two images that classic matches place (their relative pose is SIFT's, and a
+    mesh turned front to back is 180 deg off), and still judges every other pair."""
+    from scipy.spatial.transform import Rotation
+
+    from colmap_vc.mapping.priors import prior_deviation_deg
+
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    priors = read_priors(dome_scene / "priors")  # realistic meshes
+    names = sorted(im.name for im in rec.images.values())
+    assert prior_deviation_deg(rec, priors) < 35.0
+    flip = Rotation.from_euler("y", 150, degrees=True).as_matrix()
+    turned = set(names[:3])
+    for image in rec.images.values():
+        if image.name in turned:
+            T = image.cam_from_world().matrix()
+            rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
+                pycolmap.Rotation3d(flip @ T[:, :3]), flip @ T[:, 3]
+            )
+    assert prior_deviation_deg(rec, priors) > 35.0
+    assert prior_deviation_deg(rec, priors, frozenset(names)) == 0.0
+    # Pinned turned cameras are still judged against the cameras people place.
+    assert prior_deviation_deg(rec, priors, frozenset(turned)) > 35.0
+
+
 @pytest.mark.parametrize("where", ["project", "foreign"])
 def test_overwrite_never_removes_what_colmap_vc_did_not_write(
     dome_scene, augmented, tmp_path, where

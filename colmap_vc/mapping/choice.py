@@ -8,7 +8,9 @@
   the coarse camera poses the meshes give (mesh alignment). When it contradicts
   them (a mirrored two-view start, typical with one person) or registers fewer
   images than the meshes can place, the mesh-initialised mapper replaces it if it
-  does better.
+  does better. Two images that classic (SIFT) matches place are not checked
+  against each other: the meshes err more than SIFT does (a prior turned front
+  to back is 180 deg off), so they judge only the cameras people place.
 """
 
 from __future__ import annotations
@@ -19,6 +21,7 @@ from pathlib import Path
 
 import pycolmap
 
+from ..camera_check import classic_support
 from ..meshalign import mesh_alignment_poses
 from . import strategies
 from .inputs import MapInputs
@@ -82,17 +85,34 @@ def _mesh_fallback(
         return models
     key = max(models, key=lambda k: models[k].num_reg_images(), default=None)
     best = None if key is None else models[key]
-    deviation = 180.0 if best is None else prior_deviation_deg(best, priors)
+    # Two images that classic matches place are not judged against each other by
+    # the meshes: a prior's error (a mesh turned front to back) is not theirs.
+    pinned = (
+        frozenset()
+        if best is None
+        else frozenset(
+            best.image(i).name
+            for i, n in classic_support(best, inputs.num_classic).items()
+            if n >= options.keypoint_ba_options.min_classic_support
+        )
+    )
+    deviation = 180.0 if best is None else prior_deviation_deg(best, priors, pinned)
     placeable = len(
         mesh_alignment_poses(priors, image_names=set(inputs.views.image_names))
     )
     num_best = 0 if best is None else best.num_reg_images()
     contradicts = deviation > options.max_prior_deviation_deg
     if not contradicts and num_best >= placeable:
-        logger.info(
-            "the incremental model agrees with the mesh prior (median %.0f deg)",
-            deviation,
-        )
+        if num_best and len(pinned) >= num_best:
+            logger.info(
+                "classic matches place every image of the incremental model: the "
+                "meshes do not judge it"
+            )
+        else:
+            logger.info(
+                "the incremental model agrees with the mesh prior (median %.0f deg)",
+                deviation,
+            )
         return models
     logger.info(
         "the incremental model %s: mesh-initialised mapping instead",

@@ -26,8 +26,15 @@ from ..structs import ScenePriors
 logger = logging.getLogger(__name__)
 
 
-def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> float:
-    """Median rotation difference (deg) of a model's and the meshes' relative poses."""
+def prior_deviation_deg(
+    rec: pycolmap.Reconstruction,
+    priors: ScenePriors,
+    exempt: frozenset[str] = frozenset(),
+) -> float:
+    """Median rotation difference (deg) of a model's and the meshes' relative poses,
+    over the pairs of its images not both in ``exempt`` (images that classic
+    matches place: the meshes do not judge their relative pose); 0 without such
+    a pair."""
     names = {im.name for im in rec.images.values() if im.has_pose}
     mesh = mesh_alignment_poses(priors, image_names=names)
     model = {
@@ -43,6 +50,7 @@ def prior_deviation_deg(rec: pycolmap.Reconstruction, priors: ScenePriors) -> fl
         )
         for i, a in enumerate(common)
         for b in common[i + 1 :]
+        if not (a in exempt and b in exempt)
     ]
     return float(np.median(diffs)) if diffs else 0.0
 
