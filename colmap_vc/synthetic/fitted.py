@@ -6,8 +6,10 @@ on the fitted mesh for the dense surface map. Its map therefore repeats the
 landmarks' errors: on pose2sim a surface sample's error correlates 0.74 with
 the keypoint errors around it, against 0.26 for the DensePose-like map of the
 ``realistic`` level, whose sliding is drawn independently of the keypoints, and
-0.68 for this level (``bench/landmark_noise.py``; docs/synthetic.md, "The fitted
-level"). This level runs the same fit on the synthetic people:
+0.49 for this level (``bench/landmark_noise.py``; docs/synthetic.md, "The fitted
+level"), whose surface samples spread as pose2sim's do against its keypoints
+(1.08 times them; pose2sim 0.97-1.12). This level runs the same fit on the
+synthetic people:
 
 - the exact BlazePose landmarks of the true body (:func:`landmarks_from_mesh`);
   with ``turn_prob`` the detector takes a back view for a front view (2 of 20
