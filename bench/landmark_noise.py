@@ -236,10 +236,10 @@ def measure_3d(dbs: list[tuple[Path, Path]]) -> dict:
                     if not gap or min(gap) > 0.05 * height:
                         continue
                     hips = [nm.index("left_hip"), nm.index("right_hip")]
-                    truth = X[kp.track[sel]] @ T[:, :3].T + T[:, 3]
-                    truth -= truth[hips].mean(axis=0)
-                    mp = found[int(np.argmin(gap))].landmarks.points_3d[idx]
-                    mp = mp - mp[hips].mean(axis=0)
+                    world = X[kp.track[sel]] @ T[:, :3].T + T[:, 3]  # camera frame
+                    truth = world - world[hips].mean(axis=0)
+                    match = found[int(np.argmin(gap))].landmarks
+                    mp = match.points_3d[idx] - match.points_3d[idx][hips].mean(axis=0)
                     extent = float(np.ptp(truth, axis=0).max())
                     R = _kabsch(mp, truth)
                     angles.append(
@@ -250,11 +250,8 @@ def measure_3d(dbs: list[tuple[Path, Path]]) -> dict:
                     turned_out.append((mp @ R.T - truth) / extent)
                     # The same landmarks' 2D error (against the truth projected),
                     # beside the 3D one across the image: each less its view's median.
-                    world = X[kp.track[sel]] @ T[:, :3].T + T[:, 3]
-                    best = found[int(np.argmin(gap))].landmarks.xy_img[idx]
-                    e2 = (
-                        best - rec.camera(image.camera_id).img_from_cam(world)
-                    ) / height
+                    projected = rec.camera(image.camera_id).img_from_cam(world)
+                    e2 = (match.xy_img[idx] - projected) / height
                     e3 = (mp - truth)[:, :2] / extent
                     pairs_2d_3d.append(
                         np.c_[e2 - np.median(e2, axis=0), e3 - np.median(e3, axis=0)]
