@@ -289,7 +289,16 @@ def compute_virtual_correspondences(
         stored_order: list[tuple[IndexArray, int]] = []
         cats: list[tuple[IndexArray, ...]] = []
         for n1, n2 in sorted(association.links):
-            pair_links = association.links[(n1, n2)]
+            # Identities given in the priors link every pair of images that share
+            # a person, also pairs no VC was computed for (left to classic
+            # matching, or beyond the selected partners).
+            pair_links = [
+                (a, b)
+                for a, b in association.links[(n1, n2)]
+                if (n1, n2, a, b) in cache
+            ]
+            if not pair_links:
+                continue
             cat = concat_matches([(a, b, cache[(n1, n2, a, b)]) for a, b in pair_links])
             if len(cat[0]) < options.min_num_vcs:
                 continue

@@ -221,6 +221,67 @@ def test_the_meshes_do_not_judge_two_cameras_classic_matches_place(dome_scene):
     assert prior_deviation_deg(rec, priors, frozenset(turned)) > 35.0
 
 
+def test_a_model_sift_places_is_kept_though_the_meshes_contradict_it(tmp_path, caplog):
+    """A dense scene that SIFT solves, priors with the people's ids (`augment`
+    links every pair that shares a person, also those it leaves to SIFT), and for
+    `map` every other mesh turned front to back: the incremental model stays."""
+    import dataclasses
+    import logging
+
+    from colmap_vc.priors import write_priors
+    from colmap_vc.synthetic import SynthOptions, generate
+
+    scene = tmp_path / "scene"
+    generate(
+        "dense",
+        scene,
+        SynthOptions(
+            seed=0,
+            num_cameras=8,
+            num_people=1,
+            noise="realistic",
+            num_threads=2,
+            with_ids=True,
+        ),
+    )
+    db = tmp_path / "database.db"
+    shutil.copyfile(scene / "database.db", db)
+    summary = augment.run(
+        db, scene / "gt" / "priors", augment.AugmentOptions(show_progress=False)
+    )
+    assert len(summary.pairs) < 8 * 7 // 2  # SIFT solved the others: no VCs
+    priors = read_priors(scene / "gt" / "priors")
+    turn = np.diag([-1.0, 1.0, -1.0])  # 180 deg about the camera's vertical
+
+    def turned(v: np.ndarray) -> np.ndarray:
+        return (v - v.mean(axis=0)) @ turn.T + v.mean(axis=0)
+
+    images = {
+        name: dataclasses.replace(
+            image,
+            persons=[
+                dataclasses.replace(p, vertices_cam=turned(p.vertices_cam))
+                for p in image.persons
+            ],
+        )
+        if k % 2
+        else image
+        for k, (name, image) in enumerate(sorted(priors.images.items()))
+    }
+    write_priors(dataclasses.replace(priors, images=images), tmp_path / "turned")
+    caplog.set_level(logging.INFO, logger="colmap_vc.mapping.choice")
+    rec, _ = mapping.run(
+        db,
+        scene / "images",
+        tmp_path / "sparse",
+        mapping.MappingOptions(num_threads=2, show_progress=False),
+        priors_path=tmp_path / "turned",
+    )
+    assert "classic matches place every image" in caplog.text
+    gt = pycolmap.Reconstruction(scene / "gt" / "sparse")
+    assert evaluate_reconstruction(rec, gt).auc["15"] > 95
+
+
 @pytest.mark.parametrize("where", ["project", "foreign"])
 def test_overwrite_never_removes_what_colmap_vc_did_not_write(
     dome_scene, augmented, tmp_path, where
