@@ -99,6 +99,16 @@ def classic_support(
     return out
 
 
+def classic_placed(
+    rec: pycolmap.Reconstruction, num_classic: dict[int, int], min_support: int
+) -> frozenset[int]:
+    """The registered images classic keypoints place: at least ``min_support``
+    model points observed through them (:func:`classic_support`)."""
+    return frozenset(
+        i for i, n in classic_support(rec, num_classic).items() if n >= min_support
+    )
+
+
 def _without_poor_witness(
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
@@ -201,11 +211,7 @@ def check_cameras_inplace(
         errs = {i: c[0] for i, c in checks.items() if len(c[1])}
         if len(errs) < 4:
             break
-        pinned = {
-            i
-            for i, n in classic_support(rec, num_classic or {}).items()
-            if n >= options.min_classic_support
-        }
+        pinned = classic_placed(rec, num_classic or {}, options.min_classic_support)
         judged = [i for i in errs if i not in pinned]
         if not judged:
             break

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import pycolmap
 
-from ..camera_check import classic_support
+from ..camera_check import classic_placed
 from ..meshalign import mesh_alignment_poses
 from . import strategies
 from .inputs import MapInputs
@@ -92,8 +92,11 @@ def _mesh_fallback(
         if best is None
         else frozenset(
             best.image(i).name
-            for i, n in classic_support(best, inputs.num_classic).items()
-            if n >= options.keypoint_ba_options.min_classic_support
+            for i in classic_placed(
+                best,
+                inputs.num_classic,
+                options.keypoint_ba_options.min_classic_support,
+            )
         )
     )
     deviation = 180.0 if best is None else prior_deviation_deg(best, priors, pinned)

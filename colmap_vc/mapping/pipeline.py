@@ -22,7 +22,7 @@ from pathlib import Path
 import pycolmap
 
 from .. import canonical, database, outputs
-from ..camera_check import classic_support
+from ..camera_check import classic_placed
 from ..gba.ceres import PeopleNoise, bundle_adjust_inplace
 from ..keypoint_ba import keypoint_bundle_adjustment, with_loss_scale
 from ..metric_scale import (
@@ -234,8 +234,11 @@ def _check_against_meshes(
     assert inputs.priors is not None
     pinned = {
         rec.image(i).name
-        for i, n in classic_support(rec, inputs.num_classic).items()
-        if n >= options.keypoint_ba_options.min_classic_support
+        for i in classic_placed(
+            rec,
+            inputs.num_classic,
+            options.keypoint_ba_options.min_classic_support,
+        )
     }
     left_out = leave_out_prior_outliers_inplace(
         rec,
