@@ -7,10 +7,10 @@ on real photos drops the keypoints that disagree with the (biased) surface VCs a
 keeps a selection skewed by them. This pass rebuilds the model's keypoint points from
 identities (people linked across images by ``augment``'s person associations),
 triangulates them with the model's poses and runs COLMAP's bundle adjustment with a
-Cauchy loss scaled to the keypoints' pixel error, keeping classic (SIFT) points and a
-budget of the surface-VC points (``surface_per_image`` observations per image, more
-for two images: dense maps rendered from a mesh fitted to the same landmarks add
-correlated errors, docs/real-data.md).
+Cauchy loss scaled to the keypoints' pixel error, keeping classic (SIFT) points and
+the mapper's surface-VC points, each image's weighted to a fixed total
+(``surface_per_image`` observations, more for two images: dense maps rendered
+from a mesh fitted to the same landmarks add correlated errors, docs/real-data.md).
 
 On pose2sim (docs/results.md) the pass converges to the same poses from the mapper's
 model, from the keypoint-only model and from the ground truth.
@@ -68,13 +68,17 @@ class KeypointBaOptions:
     realistic priors: 3-4 px median; a fixed 16 px let a camera turned 180 deg pass
     the camera check there at 15.8 px, against 3.8 px for the median camera)."""
     surface_per_image: float = 6.0
-    """Surface-VC observations kept per registered image (an even random subset of the
-    model's VC-only points; negative: keep them all). A fixed budget, not one that
-    grows with the keypoints: the surface VCs of a mesh fitted to the same landmarks
-    have errors correlated within each person and image, so they act as a prior of
-    fixed strength on the poses (helps one instant, pose2sim: 41.7 -> 43.8 AUC@15),
-    which more instants of keypoints should outweigh (five instants: docs/results.md).
-    """
+    """What the model's surface-VC points weigh per registered image, in keypoint
+    observations: every VC-only point stays, and each of an image's N observations
+    is weighted by ``surface_per_image`` / N (when N is larger) under the keypoints'
+    loss (0: the points leave; negative: all at full weight). A fixed weight, not
+    one that grows with the samples or the keypoints: the surface VCs of a mesh
+    fitted to the same landmarks have errors correlated within each person and
+    image, so they act as a prior of fixed strength on the poses, which more
+    instants of keypoints should outweigh (five instants: docs/results.md). It
+    replaced a random subset of that many observations, whose draw moved
+    pose2sim_single t090 between 55 and 69 AUC@15 (docs/gba.md, "The surface
+    budget")."""
     surface_per_image_two_view: float = 24.0
     """The same budget for a model of two images, where one person's keypoint tracks
     (2 observations each) barely constrain the relative pose and the surface VCs
@@ -98,8 +102,8 @@ class KeypointBaOptions:
     cluster is an outlier at a few sigma whatever the cluster's shared error)."""
     min_track_length: int = 2
     """Keypoint tracks seen by fewer registered images are left out."""
-    surface_seed: int = 0
-    """Seed of the surface subset."""
+    check_seed: int = 0
+    """Seed of the camera check's PnP RANSAC."""
     check_cameras: bool = True
     """Check every camera against keypoint points that other cameras triangulate
     (module doc of :func:`check_cameras_inplace`): re-pose it by PnP where it
@@ -144,11 +148,44 @@ class KeypointBaSummary:
     left_out: dict[str, str] | None = None  # image name -> why it was deregistered
     mirrored: tuple[str, ...] = ()  # re-posed with their people's left/right swapped
     people: PeopleNoise | None = None
-    """The noise of each people observation (None without surface tracks): what
-    a later bundle adjustment of the model weighs them by."""
+    """The noise of each surface observation (the budget's weights, or the
+    surface tracks'; None without surface weights): what a later bundle
+    adjustment of the model weighs them by."""
     tracks: KeypointTracks | None = None
     """The keypoint tracks as the model holds them after the camera check (people
     exchanged or left out there); None without keypoint VCs."""
+
+
+def surface_budget_noise(
+    rec: pycolmap.Reconstruction,
+    observations: np.ndarray,
+    per_image: float,
+    loss_scale_px: float,
+) -> PeopleNoise:
+    """The surface-VC ``observations`` ((image id, point2D index) rows) weighted so
+    that each image's weigh ``per_image`` keypoint observations together: an image
+    with N of them gives each the noise sqrt(N / ``per_image``) in keypoint units
+    (1 when N is smaller), under the keypoints' Cauchy loss at ``loss_scale_px``.
+
+    The same prior strength as a random subset of ``per_image`` observations per
+    image, without the draw: every sample speaks, none decides alone."""
+    sigma = {
+        i: np.full(im.num_points2D(), np.nan)
+        for i, im in rec.images.items()
+        if im.has_pose
+    }
+    robust = {i: np.full_like(v, np.nan) for i, v in sigma.items()}
+    if not len(observations):
+        return PeopleNoise(sigma_px=sigma, robust_px=robust)
+    images, index, count = np.unique(
+        observations[:, 0], return_inverse=True, return_counts=True
+    )
+    noise = np.sqrt(np.maximum(count / per_image, 1.0))
+    for k, image_id in enumerate(images.tolist()):  # loop over images
+        rows = observations[index == k, 1]
+        sigma[image_id][rows] = noise[k]
+        robust[image_id][rows] = loss_scale_px
+    return PeopleNoise(sigma_px=sigma, robust_px=robust)
 
 
 def with_loss_scale(
@@ -201,27 +238,30 @@ def keypoint_bundle_adjustment(
     # keypoint ones are rebuilt below), thinned to the budget.
     keypoint_obs = keypoint_observations(tracks)
     delete_points_observing(out, keypoint_obs)  # rebuilt below, by identity
-    vc_only, vc_obs, dropped = [], [], 0
+    vc_only, vc_obs = [], []
     for point_id, point in out.points3D.items():  # loop over the model's points
         els = [(e.image_id, e.point2D_idx) for e in point.track.elements]
         if any(idx < num_classic[i] for i, idx in els):
             continue
         vc_only.append(point_id)
-        vc_obs.append(len(els))
+        vc_obs.extend(els)
     per_image = (
         options.surface_per_image_two_view
         if len(registered) == 2
         else options.surface_per_image
     )
-    if per_image >= 0 and vc_only:
-        order = np.random.default_rng(options.surface_seed).permutation(len(vc_only))
-        kept_obs = np.cumsum(np.asarray(vc_obs)[order])
-        budget = per_image * len(registered)
-        for k in order[kept_obs > budget]:
-            dropped += vc_obs[k]
-            out.delete_point3D(vc_only[k])
+    dropped = 0
+    if per_image == 0:
+        for point_id in vc_only:
+            out.delete_point3D(point_id)
+        dropped, vc_obs = len(vc_obs), []
+    weights = (
+        surface_budget_noise(out, np.array(vc_obs).reshape(-1, 2), per_image, loss)
+        if per_image > 0
+        else None
+    )
     good, counts = add_keypoint_points(out, tracks, options.min_track_length)
-    bundle_adjust_inplace(out, loss)
+    bundle_adjust_inplace(out, loss, weights)
     few = unchecked_people(tracks) if len(registered) >= 3 else []
     if few and options.check_cameras:
         tracks, missed = check_few_view_people(
@@ -237,9 +277,9 @@ def keypoint_bundle_adjustment(
             )
             delete_points_observing(out, keypoint_obs)
             good, counts = add_keypoint_points(out, tracks, options.min_track_length)
-            bundle_adjust_inplace(out, loss)
+            bundle_adjust_inplace(out, loss, weights)
     num_kp_obs = int(counts[good].sum())
-    num_surface = int(sum(vc_obs)) - dropped
+    num_surface = len(vc_obs)
     relocalised: list[str] = []
     left_out: dict[str, str] = {}
     mirrored: list[str] = []
@@ -249,7 +289,7 @@ def keypoint_bundle_adjustment(
             out,
             tracks,
             options,
-            lambda rec: bundle_adjust_inplace(rec, loss),
+            lambda rec: bundle_adjust_inplace(rec, loss, weights),
             mirror=mirror,
             num_classic=num_classic,
             vc_identity=vc_identities(Path(database_path)),
@@ -260,7 +300,7 @@ def keypoint_bundle_adjustment(
             check.mirrored,
         )
         tracks, exchanged = check.tracks, check.exchanged
-    people: PeopleNoise | None = None
+    people = weights
     if options.surface_tracks:
         # After the camera check: a prior turned front to back would pull its
         # camera with hundreds of surface samples before the check could
@@ -286,10 +326,15 @@ def keypoint_bundle_adjustment(
     )
     logger.info(
         "keypoint BA: %d keypoint tracks (%d observations), %d surface-VC "
-        "observations kept, %d dropped (%.1f s)",
+        "observations%s, %d dropped (%.1f s)",
         summary.num_tracks,
         summary.num_keypoint_observations,
         summary.num_surface_observations,
+        (
+            ""
+            if options.surface_tracks or weights is None
+            else f" weighing {per_image:g} per image"
+        ),
         summary.num_surface_observations_dropped,
         summary.elapsed_s,
     )

@@ -44,7 +44,7 @@ def robust_pnp(
         return np.inf, None
     est = pycolmap.AbsolutePoseEstimationOptions()
     est.ransac.max_error = max_error_px
-    est.ransac.random_seed = options.surface_seed
+    est.ransac.random_seed = options.check_seed
     found = pycolmap.estimate_and_refine_absolute_pose(xy, pts, camera, est)
     if found is None or found["num_inliers"] < options.min_check_points:
         return np.inf, None

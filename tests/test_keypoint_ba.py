@@ -163,6 +163,51 @@ def test_keypoint_ba_pulls_perturbed_poses_back(dome_scene, mapped, rng):
         assert np.array_equal(im.cam_from_world().matrix(), snapshot[i])
 
 
+def test_the_default_weighs_each_images_surface_points_to_a_fixed_total(
+    dome_scene, mapped, rng
+):
+    """Every VC-only point of the mapper's model stays; an image's N surface
+    observations weigh ``surface_per_image`` keypoint observations together (noise
+    sqrt(N / budget) each), none are drawn; the same input gives the same model,
+    and the poses come back from a 5 deg perturbation."""
+    db, rec = mapped
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    views = database.read_views(db)
+    first_vc = dict(
+        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
+    )
+    kp = keypoint_tracks(db, np.array(sorted(rec.images)))
+    keypoint_obs = set(zip(kp.image_id.tolist(), kp.point2D_idx.tolist(), strict=True))
+    surface = [  # the VC-only points that observe no keypoint VC
+        (e.image_id, e.point2D_idx)
+        for p in rec.points3D.values()
+        if all(
+            e.point2D_idx >= first_vc[e.image_id]
+            and (e.image_id, e.point2D_idx) not in keypoint_obs
+            for e in p.track.elements
+        )
+        for e in p.track.elements
+    ]
+    assert len(surface) > 20 * rec.num_reg_images()  # many more than the budget
+    perturbed = _turned(rec, rng, 5.0)
+    options = KeypointBaOptions(surface_per_image=6.0)
+    out, summary = keypoint_bundle_adjustment(db, perturbed, options)
+    assert summary.num_surface_observations == len(surface)
+    assert summary.num_surface_observations_dropped == 0
+    assert summary.people is not None
+    for image_id, sigma in summary.people.sigma_px.items():
+        mine = [k for i, k in surface if i == image_id]
+        assert np.isfinite(sigma).sum() == len(mine)
+        # Weights 1 / sigma^2 of the image's surface observations sum to 6.
+        assert np.sum(sigma[mine] ** -2.0) == pytest.approx(6.0)
+    again, _ = keypoint_bundle_adjustment(db, perturbed, options)
+    for i, im in out.images.items():
+        assert np.array_equal(
+            im.cam_from_world().matrix(), again.image(i).cam_from_world().matrix()
+        )
+    assert evaluate_reconstruction(out, gt).median_error_deg < 1.0
+
+
 def _tracks_from_points(rec, points, rng, noise_px=1.0):
     """Keypoint tracks of 3D points seen by every camera of ``rec``."""
     track, image_id, xy = [], [], []
