@@ -8,8 +8,8 @@ bench/accuracy.py (run it first: this bench starts from its augmented databases)
 
 - keypoints alone: the model's keypoint points (the camera check's left/right
   exchanges applied), without surface points;
-- the default: the model as `map` leaves it (keypoints and a budget of 6 surface
-  observations per image, drawn at random with seed 0);
+- the default: the model as `map` leaves it (keypoints and the mapper's surface
+  points, each image's weighing 6 keypoint observations together);
 - `map --gba`: every surface sample, weighted by its spread and its correlation
   with its neighbours (colmap_vc/gba/correlated.py), from the same database;
 - the visible surface samples the truth keeps: within 8 px of the projection of
@@ -60,7 +60,7 @@ SCENES = {
 }
 ROWS = {
     "keypoints": "keypoints alone",
-    "default": "keypoints + 6 surface observations per image (`map`)",
+    "default": "keypoints + surface points weighing 6 observations per image (`map`)",
     "gba": "keypoints + every surface sample, correlated noise (`map --gba`)",
     "truth_kept": "keypoints + visible surface samples within 8 px of the truth",
     "truth_weighted": "the same, weighted as `map --gba` weighs its samples",

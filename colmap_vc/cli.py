@@ -179,8 +179,8 @@ class Map:
     gba: bool = False
     """Refine with the generalized BA: every surface VC as a track by identity,
     weighted by its spread and its correlation with its neighbours, instead of the
-    keypoint BA's fixed budget of surface VCs. Off by default: it wins on the
-    synthetic domes and loses on pose2sim_single (docs/gba.md)."""
+    keypoint BA's fixed weight of surface VCs per image. Off by default: it is level
+    on the synthetic domes and behind on pose2sim (docs/gba.md)."""
     overwrite: bool = False
     """Replace an OUTPUT_PATH that `map` wrote before (it holds a .colmap-vc-map
     marker); a folder colmap-vc did not write, or one holding the database, images or

@@ -89,9 +89,9 @@ class KeypointBaOptions:
     surface points give way to every surface VC in its track by identity (person,
     template sample: one X1 shared by all views), each observation weighted by
     its spread and its correlation with its neighbours in the image, relative to
-    the keypoints (:mod:`colmap_vc.gba.correlated`), instead of the fixed budget
-    ``surface_per_image`` under the keypoints' loss. Off by default: against the
-    budget it wins on the synthetic domes and loses on pose2sim_single
+    the keypoints (:mod:`colmap_vc.gba.correlated`), instead of the fixed weight
+    ``surface_per_image`` under the keypoints' loss. Off by default: against
+    that weight it is level on the synthetic domes and behind on pose2sim
     (docs/gba.md, "Measured")."""
     min_sigma_px: float = 0.5
     """Smallest noise a cluster is given, pixels: a spread estimated below half a
@@ -235,7 +235,7 @@ def keypoint_bundle_adjustment(
         zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
     )
     # The model's points: classic ones stay; VC-only ones are surface points (the
-    # keypoint ones are rebuilt below), thinned to the budget.
+    # keypoint ones are rebuilt below), weighted to the budget.
     keypoint_obs = keypoint_observations(tracks)
     delete_points_observing(out, keypoint_obs)  # rebuilt below, by identity
     vc_only, vc_obs = [], []

@@ -5,9 +5,9 @@ DensePose-like network, or a mesh fitted to a few landmarks and rendered). Two
 surface samples a few pixels apart in one image then share most of their error,
 and samples far apart share little of it. Weighted as independent observations,
 the 500 samples of a person in an image would count 500 times where their image
-holds the evidence of a few dozen; a fixed budget of samples per image (what the
-keypoint BA did) depends on how densely they were drawn and on the map's
-resolution.
+holds the evidence of a few dozen; a fixed weight per image (what the default
+keypoint BA gives the mapper's surface points) does not follow how far the
+map's errors reach.
 
 This module measures the correlation instead. For the observations of one kind
 (the surface tracks by identity) against points triangulated by all their views:

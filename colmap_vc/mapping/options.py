@@ -97,8 +97,9 @@ class MappingOptions:
     registration and triangulation with one global BA iteration, COLMAP's minimum)."""
     keypoint_ba: bool = True
     """Finish with the keypoint bundle adjustment (colmap_vc/keypoint_ba.py): the
-    people's keypoints as multi-view tracks by identity, robust loss, a budget of
-    surface-VC points. A database without keypoint VCs is left as mapped."""
+    people's keypoints as multi-view tracks by identity, robust loss, the mapper's
+    surface-VC points weighted to a fixed total per image. A database without
+    keypoint VCs is left as mapped."""
     keypoint_ba_options: KeypointBaOptions = field(default_factory=KeypointBaOptions)
     """Options of that pass."""
     gravity: bool = True
