@@ -77,13 +77,13 @@ class KeypointBaOptions:
     image, so they act as a prior of fixed strength on the poses, which more
     instants of keypoints should outweigh (five instants: docs/results.md). It
     replaced a random subset of that many observations, whose draw moved
-    pose2sim_single t090 between 55 and 69 AUC@15 (docs/gba.md, "The surface
-    budget")."""
+    pose2sim_single t090 between 55 and 69 AUC@15 (docs/gba.md, "The default's
+    surface budget")."""
     surface_per_image_two_view: float = 24.0
     """The same budget for a model of two images, where one person's keypoint tracks
     (2 observations each) barely constrain the relative pose and the surface VCs
     condition it (synthetic two-view scenes, realistic priors: AUC@15 20.8 with 6,
-    34.5 with 24; docs/results.md)."""
+    34.5 with 24, drawn as the budget then was; docs/results.md)."""
     surface_tracks: bool = False
     """The generalized BA (``map --gba``): after the camera check, the budget's
     surface points give way to every surface VC in its track by identity (person,
