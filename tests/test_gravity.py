@@ -15,7 +15,7 @@ import pytest
 from scipy.spatial.transform import Rotation
 
 from colmap_vc.evaluation import evaluate_reconstruction
-from colmap_vc.gba.ceres import bundle_adjust_inplace
+from colmap_vc.gba.ceres import PeopleNoise, bundle_adjust_inplace
 from colmap_vc.gba.up import UpPriors, rotate_with_jacobian
 from colmap_vc.gravity import (
     Gravity,
@@ -382,6 +382,37 @@ def test_the_tilt_error_the_residuals_cannot_see_is_read_from_the_ups(
     rec.deregister_frame(rec.image(registered.pop(name)).frame_id)
     del measured[name]
     assert absorbed_noise_px(rec, registered, measured, 1e3) > 5.0
+
+
+def test_weighted_surface_points_do_not_count_in_the_tilt_covariance(dome_scene):
+    """The covariance that turns the tilt error into pixels is the keypoints':
+    points weighted as surface observations (a few per image together) are left
+    out of it, as if they were not in the model; counted at full weight, they
+    shrink the covariance and inflate the noise."""
+    rec = _model_with_tilts(dome_scene, 2.0, np.random.default_rng(3))
+    registered = {im.name: i for i, im in rec.images.items()}
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    measured = {
+        n: dataclasses.replace(
+            _gravity(gt.image(i).cam_from_world().rotation.matrix() @ WORLD_UP),
+            sigma_rad=1e-4,
+        )
+        for n, i in registered.items()
+    }
+    surface = [i for i in sorted(rec.points3D) if i % 4]  # three points in four
+    sigma = {i: np.full(im.num_points2D(), np.nan) for i, im in rec.images.items()}
+    for point_id in surface:
+        for e in rec.point3D(point_id).track.elements:
+            sigma[e.image_id][e.point2D_idx] = 10.0
+    people = PeopleNoise(sigma_px=sigma, robust_px=sigma)
+    without = pycolmap.Reconstruction(rec)
+    for point_id in surface:
+        without.delete_point3D(point_id)
+    everything = absorbed_noise_px(rec, registered, measured, 1e3)
+    weighted = absorbed_noise_px(rec, registered, measured, 1e3, people)
+    expected = absorbed_noise_px(without, registered, measured, 1e3)
+    assert weighted == pytest.approx(expected, rel=1e-6)
+    assert everything / weighted > 1.5  # 4x the points: about sqrt(4)
 
 
 _LARGE_UP_PROBLEM = """

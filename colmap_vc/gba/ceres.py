@@ -80,7 +80,7 @@ def bundle_adjust_inplace(
     for image_id in sorted(rec.reg_image_ids()):
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    weighted = [] if people is None else _weighted_points(rec, people)
+    weighted = [] if people is None else weighted_points(rec, people)
     if not weighted:
         adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
         alive = _add_up(adjuster.problem, rec, up)
@@ -153,7 +153,7 @@ def _add_up(
     return [block, *alive]
 
 
-def _weighted_points(rec: pycolmap.Reconstruction, people: PeopleNoise) -> list[int]:
+def weighted_points(rec: pycolmap.Reconstruction, people: PeopleNoise) -> list[int]:
     """The model points all of whose observations have a noise, in id order."""
     out = []
     for point_id in sorted(rec.point3D_ids()):  # loop over the model's points

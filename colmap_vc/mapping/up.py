@@ -26,7 +26,12 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
-from ..gba.ceres import PeopleNoise, ba_options, bundle_adjust_inplace
+from ..gba.ceres import (
+    PeopleNoise,
+    ba_options,
+    bundle_adjust_inplace,
+    weighted_points,
+)
 from ..gba.noise import cluster_noise
 from ..gba.up import UpPriors
 from ..gravity import Gravity, GravityOptions, measure_gravity
@@ -138,7 +143,7 @@ def refine_with_gravity_inplace(
         registered_ids = np.array(sorted(registered.values()), dtype=np.int64)
         tracks = keypoint_tracks(inputs.database_path, registered_ids)
     noise = keypoint_noise_px(rec, tracks, min_sigma_px)
-    absorbed = absorbed_noise_px(rec, registered, measured, loss_scale_px)
+    absorbed = absorbed_noise_px(rec, registered, measured, loss_scale_px, people)
     if noise is not None and absorbed is not None and absorbed > noise:
         logger.info(
             "gravity: the cameras' tilts disagree with their ups as if the keypoints "
@@ -213,9 +218,11 @@ def absorbed_noise_px(
     registered: dict[str, int],
     measured: dict[str, Gravity],
     loss_scale_px: float,
+    people: PeopleNoise | None = None,
 ) -> float | None:
     """The keypoint noise the cameras' tilts show, pixels: what the residuals
-    cannot (None with fewer than three measured ups, or without a covariance).
+    cannot (None with fewer than three measured ups, or without a covariance;
+    ``people``: the weighted surface observations, left out of the covariance).
 
     The residuals see the keypoints' spread and the error a person's keypoints
     share in an image (:func:`keypoint_noise_px`), but not an error the poses
@@ -248,6 +255,10 @@ def absorbed_noise_px(
     # COLMAP's covariance reads every frame's pose: a camera left out before
     # (contradicted_cameras) has none, so the estimate runs on a copy without it.
     posed = pycolmap.Reconstruction(rec)
+    # The covariance is the keypoints' (at one pixel each): surface points
+    # weighted to a few observations per image would count thousands of times.
+    for point_id in [] if people is None else weighted_points(posed, people):
+        posed.delete_point3D(point_id)
     posed.tear_down()
     config = pycolmap.BundleAdjustmentConfig()
     for image_id in sorted(posed.reg_image_ids()):
