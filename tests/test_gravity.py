@@ -351,6 +351,18 @@ def _model_with_tilts(dome_scene, tilt_deg: float, rng) -> pycolmap.Reconstructi
     return rec
 
 
+def _exact_ups(dome_scene, registered: dict[str, int]) -> dict:
+    """Each camera's true up (standard error 1e-4 rad), by image name."""
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    return {
+        n: dataclasses.replace(
+            _gravity(gt.image(i).cam_from_world().rotation.matrix() @ WORLD_UP),
+            sigma_rad=1e-4,
+        )
+        for n, i in registered.items()
+    }
+
+
 def test_the_tilt_error_the_residuals_cannot_see_is_read_from_the_ups(
     dome_scene,
 ) -> None:
@@ -361,14 +373,7 @@ def test_the_tilt_error_the_residuals_cannot_see_is_read_from_the_ups(
     for tilt in (0.0, 1.0, 2.0):
         rec = _model_with_tilts(dome_scene, tilt, np.random.default_rng(3))
         registered = {im.name: i for i, im in rec.images.items()}
-        gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
-        measured = {
-            n: dataclasses.replace(
-                _gravity(gt.image(i).cam_from_world().rotation.matrix() @ WORLD_UP),
-                sigma_rad=1e-4,
-            )
-            for n, i in registered.items()
-        }
+        measured = _exact_ups(dome_scene, registered)
         # A loss far above the residuals: the covariance at the tilted poses is
         # the one at the adjusted poses (where the step runs, residuals are small).
         found.append(absorbed_noise_px(rec, registered, measured, 1e3))
@@ -391,14 +396,7 @@ def test_weighted_surface_points_do_not_count_in_the_tilt_covariance(dome_scene)
     shrink the covariance and inflate the noise."""
     rec = _model_with_tilts(dome_scene, 2.0, np.random.default_rng(3))
     registered = {im.name: i for i, im in rec.images.items()}
-    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
-    measured = {
-        n: dataclasses.replace(
-            _gravity(gt.image(i).cam_from_world().rotation.matrix() @ WORLD_UP),
-            sigma_rad=1e-4,
-        )
-        for n, i in registered.items()
-    }
+    measured = _exact_ups(dome_scene, registered)
     surface = [i for i in sorted(rec.points3D) if i % 4]  # three points in four
     sigma = {i: np.full(im.num_points2D(), np.nan) for i, im in rec.images.items()}
     for point_id in surface:
