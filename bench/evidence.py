@@ -1,4 +1,4 @@
-"""Each kind of evidence on real photos: what `map` gets from keypoints, surface VCs and up.
+"""Each kind of evidence on real photos: keypoints, surface VCs and the cameras' up.
 
 The same augmented databases are mapped with one kind of evidence added at a time:
 pose2sim_single and pose2sim_multi, each instant on its own (the databases of
@@ -28,7 +28,6 @@ import shutil
 import time
 from pathlib import Path
 
-import numpy as np
 from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
 from realdata import INSTANTS, SHARED, _largest_model, load_calibration, pooled
 from static_cameras import PATTERN
@@ -49,7 +48,7 @@ ARMS: dict[str, list[str]] = {
 
 
 def _map(db: Path, images: Path, sparse: Path, extra: list[str]) -> dict:
-    """`map` on ``db`` into ``sparse`` -> registered poses by name (empty on failure)."""
+    """`map` on ``db`` into ``sparse`` -> the registered poses by name (none: {})."""
     shutil.rmtree(sparse, ignore_errors=True)  # the bench's own output
     code = cli.main(
         [
@@ -174,7 +173,7 @@ def main() -> None:
         "`bench/realdata.py` and `bench/static_cameras.py`; raw numbers in "
         "`bench/out/evidence.json`. The synthetic counterpart (keypoints alone, "
         "`map`, `map --gba` over twelve domes per prior level) is in "
-        "docs/gba.md, \"Synthetic benchmark\".",
+        'docs/gba.md, "Synthetic benchmark".',
     )
 
 
