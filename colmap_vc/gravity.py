@@ -14,10 +14,11 @@ camera that sees the same gravity must be turned so that they agree
 Per camera (a static camera: pooled over all its images, whose background is the
 same):
 
-1. Line segments (OpenCV's LSD) of at least ``min_segment_px``, outside the
-   people's boxes (limbs are near-vertical and not vertical), as planes through
-   the camera centre (undistorted with the camera's model); the pieces of one
-   broken edge joined into one line (one edge, one vote).
+1. Line segments (OpenCV's LSD) of at least ``min_segment_frac`` of the image's
+   larger side, outside the people's boxes (limbs are near-vertical and not
+   vertical), as planes through the camera centre (undistorted with the
+   camera's model); the pieces of one broken edge joined into one line (one
+   edge, one vote).
 2. The vanishing point nearest the people's up: the people stand upright, so the
    direction from their feet to their heads (the major axis of each person's
    mesh) is gravity within ``max_hint_deg``. RANSAC over pairs of segments; a
@@ -48,6 +49,7 @@ import pycolmap
 from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
+from .image_io import read_image
 from .structs import BoolArray, FloatArray, IndexArray, PersonPrior
 
 logger = logging.getLogger(__name__)
@@ -57,9 +59,18 @@ logger = logging.getLogger(__name__)
 class GravityOptions:
     """Options of the vertical vanishing point."""
 
-    min_segment_px: float = 30.0
-    """Shorter segments are left out: a segment's direction is as good as its
-    length over its endpoints' error."""
+    min_segment_frac: float = 30.0 / 1920.0
+    """Shorter segments, as a fraction of the image's larger side, are left out
+    (also the margin around the people's boxes). The scene's lines scale with the
+    image: at 30 px on pose2sim's 1920-px frames every camera's up is within 1.6
+    deg of the calibration's. A fixed 30 px at half that size (960 px) dropped
+    the short verticals and kept a bundle of long oblique edges (a treadmill's
+    side, window blinds): cam02's up came out 4.6-5.5 deg off at all five
+    instants with a standard error of 0.4-0.7 deg; at 15 px the mean AUC@15 of
+    the five instants is 79.2 against 68.6 (69.3 without the ups;
+    docs/real-data.md, "Image size")."""
+    min_segment_px: float | None = None
+    """The same in pixels, for every image (overrides ``min_segment_frac``)."""
     endpoint_tol_px: float = 1.0
     """A segment supports a vanishing point when both its endpoints lie within
     this of the line from its midpoint to the point (module doc)."""
@@ -98,6 +109,13 @@ class Segments:
     @property
     def midpoint(self) -> FloatArray:
         return (self.ray1 + self.ray2) / 2.0
+
+
+def min_segment_px(options: GravityOptions, camera: pycolmap.Camera) -> float:
+    """The shortest segment kept in ``camera``'s images, pixels."""
+    if options.min_segment_px is not None:
+        return options.min_segment_px
+    return options.min_segment_frac * max(camera.width, camera.height)
 
 
 def people_up(persons: Sequence[PersonPrior]) -> FloatArray | None:
@@ -144,7 +162,8 @@ def detect_segments(
     mid = np.round((lines[:, :2] + lines[:, 2:]) / 2).astype(int)
     h, w = mask.shape
     inside = mask[np.clip(mid[:, 1], 0, h - 1), np.clip(mid[:, 0], 0, w - 1)]
-    lines = lines[(length >= options.min_segment_px) & ~inside] + 0.5  # -> COLMAP's
+    shortest = min_segment_px(options, camera)
+    lines = lines[(length >= shortest) & ~inside] + 0.5  # -> COLMAP's
     ray1 = np.c_[np.asarray(camera.cam_from_img(lines[:, :2])), np.ones(len(lines))]
     ray2 = np.c_[np.asarray(camera.cam_from_img(lines[:, 2:])), np.ones(len(lines))]
     tol = options.endpoint_tol_px / camera.mean_focal_length()
@@ -331,12 +350,22 @@ def measure_gravity(
             hint = people_up(people)
             if hint is None:
                 continue
-            image = cv2.imread(str(Path(image_dir) / name), cv2.IMREAD_GRAYSCALE)
+            image = read_image(Path(image_dir) / name, grey=True)
             if image is None:
                 logger.warning("gravity: cannot read %s: no up from it", name)
                 continue
+            if image.shape != (camera.height, camera.width):
+                logger.warning(
+                    "gravity: %s is %dx%d but its camera is %dx%d: no up from it",
+                    name,
+                    image.shape[1],
+                    image.shape[0],
+                    camera.width,
+                    camera.height,
+                )
+                continue
             hints.append(hint)
-            mask = people_mask(people, camera, options.min_segment_px)
+            mask = people_mask(people, camera, min_segment_px(options, camera))
             parts.append(detect_segments(image, camera, mask, options))
         if not parts:
             continue

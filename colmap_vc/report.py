@@ -20,7 +20,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import pycolmap
 
@@ -30,6 +29,7 @@ from colmap_vc.evaluation import (
     evaluate_reconstruction,
     relative_pose,
 )
+from colmap_vc.image_io import read_image
 from colmap_vc.report_draw import (
     draw_pair,
     epipolar_errors_px,
@@ -181,7 +181,7 @@ def _pair_errors(
 
 def _read_image(ctx: _Context, image_id: int) -> np.ndarray:
     path = Path(ctx.inputs.image_dir) / ctx.names[image_id]
-    image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+    image = read_image(path)
     if image is not None:
         return image
     logger.warning("cannot read %s: drawing on a grey canvas", path)

@@ -10,6 +10,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from .image_io import read_image
+
 logger = logging.getLogger(__name__)
 
 
@@ -27,7 +29,7 @@ def contact_sheet(
         raise ValueError("contact_sheet needs at least one image")
     tiles = []
     for i, path in enumerate(image_paths):
-        image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        image = read_image(path)
         if image is None:
             raise FileNotFoundError(f"cannot read image {path}")
         h = round(image.shape[0] * tile_width / image.shape[1])

@@ -22,6 +22,8 @@ from colmap_vc.gravity import (
     GravityOptions,
     detect_segments,
     endpoint_distance,
+    measure_gravity,
+    min_segment_px,
     people_up,
     vertical_direction,
 )
@@ -118,17 +120,85 @@ def test_segments_inside_the_people_are_left_out(rng) -> None:
     assert np.all(right.midpoint[:, 0] * 700.0 + 320.0 >= 320.0 - 1)
 
 
-def test_people_up_points_from_feet_to_head() -> None:
-    # A standing box-shaped "person" 1.7 m tall, seen by a camera pitched down.
-    R = _cam_from_world(30.0, 0.0)
+def test_the_shortest_segment_follows_the_image_size(rng) -> None:
+    # The same short edges (20-40 px at 960 px, 40-80 px at 1920 px; LSD finds
+    # both sides of each) drawn at
+    # two sizes: the threshold is a fraction of the image, so both keep them all;
+    # a fixed 30 px kept about half of them at the smaller size.
+    small, large = (
+        _camera(),
+        pycolmap.Camera(
+            model="PINHOLE", width=1280, height=1920, params=[1400, 1400, 640, 960]
+        ),
+    )
+    starts = np.c_[rng.uniform(40, 600, 40), rng.uniform(40, 880, 40)]
+    lengths = rng.uniform(20, 40, 40)
+    kept = {}
+    for cam, scale in ((small, 1), (large, 2)):
+        image = np.full((cam.height, cam.width), 200, np.uint8)
+        for (x, y), n in zip(starts * scale, lengths * scale, strict=True):
+            cv2.line(image, (int(x), int(y)), (int(x), int(y + n)), 20, 2 * scale)
+        none = np.zeros(image.shape, bool)
+        kept[scale] = len(detect_segments(image, cam, none, GravityOptions()).normal)
+        if scale == 1:
+            fixed = GravityOptions(min_segment_px=30.0)
+            kept["fixed"] = len(detect_segments(image, cam, none, fixed).normal)
+    assert min_segment_px(GravityOptions(), small) == pytest.approx(15.0)
+    assert min_segment_px(GravityOptions(), large) == pytest.approx(30.0)
+    assert kept[1] == pytest.approx(kept[2], rel=0.1), kept
+    assert kept["fixed"] < 0.75 * kept[1], kept
+
+
+def _box_person(R: np.ndarray) -> PersonPrior:
+    """A standing box-shaped "person" 1.7 m tall, 5 m in front of the camera."""
     corners = np.array(
         [[x, y, z] for x in (-0.2, 0.2) for y in (4.8, 5.1) for z in (-1.5, 0.2)]
     )
-    person = PersonPrior(
+    return PersonPrior(
         vertices_cam=np.repeat(corners, 20, axis=0) @ R.T,
         faces=np.zeros((0, 3), np.int64),
     )
-    up = people_up([person])
+
+
+def test_gravity_reads_the_stored_pixels_whatever_the_exif_orientation(
+    rng, tmp_path, caplog
+) -> None:
+    # Phone photos carry an EXIF orientation; COLMAP and the pose estimator read
+    # the stored pixels, so must the gravity step: turned by the tag, the image
+    # no longer fits its camera and its verticals lie on their side.
+    from PIL import Image
+
+    camera = _camera()
+    R = _cam_from_world(20.0, 3.0)
+    image = _render(R, camera, rng, vertical=True)
+    for tag in (1, 6):
+        exif = Image.Exif()
+        exif[0x0112] = tag  # Orientation
+        Image.fromarray(image).save(tmp_path / f"tag{tag}.jpg", quality=95, exif=exif)
+    names = ("tag1.jpg", "tag6.jpg")
+    person = {n: [_box_person(R)] for n in names}
+    found = measure_gravity(
+        tmp_path, {n: [n] for n in names}, dict.fromkeys(names, camera), person
+    )
+    assert set(found) == set(names)
+    assert np.allclose(found["tag1.jpg"].up_cam, found["tag6.jpg"].up_cam)
+    cosine = found["tag6.jpg"].up_cam @ (R @ WORLD_UP)
+    assert np.degrees(np.arccos(np.clip(cosine, -1, 1))) < 0.5
+    # An image that does not fit its camera gives no up, and says why.
+    big = pycolmap.Camera(
+        model="PINHOLE", width=1280, height=1920, params=[1400, 1400, 640, 960]
+    )
+    with caplog.at_level("WARNING", logger="colmap_vc.gravity"):
+        one = {"tag1.jpg": ["tag1.jpg"]}
+        none = measure_gravity(tmp_path, one, {"tag1.jpg": big}, person)
+    assert none == {}
+    assert "is 640x960 but its camera is 1280x1920" in caplog.text
+
+
+def test_people_up_points_from_feet_to_head() -> None:
+    # A standing box-shaped "person" 1.7 m tall, seen by a camera pitched down.
+    R = _cam_from_world(30.0, 0.0)
+    up = people_up([_box_person(R)])
     assert up is not None
     assert np.degrees(np.arccos(np.clip(up @ (R @ WORLD_UP), -1.0, 1.0))) < 1.0
     assert people_up([]) is None
