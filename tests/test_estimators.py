@@ -263,6 +263,30 @@ def test_mediapipe_skips_bad_images_with_a_reason(mediapipe_run):
     assert summary.num_images == 5
 
 
+def test_priors_refuse_when_no_image_can_be_used(tmp_path):
+    # Database names that are not in the folder, or images of another size than
+    # their cameras: nothing was looked for, so no priors (augment would take
+    # empty ones for images without people).
+    pytest.importorskip("ai_edge_litert")
+    from colmap_vc.estimators import run_estimator
+
+    images = tmp_path / "images"
+    images.mkdir()
+    cv2.imwrite(str(images / "small.png"), np.full((48, 64, 3), 128, np.uint8))
+    camera = pycolmap.Camera(
+        model="PINHOLE", width=128, height=96, params=[100.0, 100.0, 64.0, 48.0]
+    )
+    cameras = {"small.png": camera, "missing.png": camera}
+    with pytest.raises(ValueError, match="none of the 2 images could be used"):
+        run_estimator(
+            images,
+            tmp_path / "priors",
+            cameras=cameras,
+            options=EstimatorOptions(show_progress=False),
+        )
+    assert not (tmp_path / "priors" / "priors.json").exists()
+
+
 def test_pose2sim_one_instant_end_to_end(tmp_path):
     """priors -> augment -> map on the 4 photos of one instant: every camera registers
     and the relative poses are near the calibration (classic COLMAP registers none)."""

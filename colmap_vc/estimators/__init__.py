@@ -19,6 +19,7 @@ from pathlib import Path
 import pycolmap
 
 from colmap_vc.estimators.fit import FitOptions
+from colmap_vc.image_io import read_image
 
 logger = logging.getLogger(__name__)
 
@@ -94,6 +95,9 @@ class EstimatorReport:
     """Every detection, kept or skipped, in image then detection order."""
     seconds: dict[str, float] = field(default_factory=dict)
     """Image name -> wall-clock seconds spent on it."""
+    unusable: frozenset[str] = frozenset()
+    """Images nothing was looked for in: unreadable, or not the size of their
+    camera (their reason is in ``skipped``)."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -120,11 +124,9 @@ def _list_images(image_dir: Path) -> list[str]:
 
 def _guess_cameras(image_dir: Path, names: list[str]) -> dict[str, pycolmap.Camera]:
     """COLMAP's own default for unknown cameras: SIMPLE_RADIAL, f = 1.2 max(w, h)."""
-    import cv2
-
     cameras = {}
     for name in names:
-        image = cv2.imread(str(image_dir / name), cv2.IMREAD_UNCHANGED)
+        image = read_image(image_dir / name)
         if image is None:
             continue
         h, w = image.shape[:2]
@@ -196,6 +198,13 @@ def run_estimator(
     from colmap_vc.priors import write_priors
 
     priors, report = mp_estimator.estimate_priors(image_dir, names, cameras, options)
+    if len(report.unusable) == len(names):
+        name = min(report.unusable)
+        raise ValueError(
+            f"none of the {len(names)} images could be used (e.g. {name}: "
+            f"{report.skipped[name]}): no priors written. Check the image folder "
+            "against the database's image names and camera sizes."
+        )
     from colmap_vc.estimators.body import TEMPLATE_NAME, load_template
 
     path = write_priors(

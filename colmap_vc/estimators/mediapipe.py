@@ -25,7 +25,6 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
-import cv2
 import numpy as np
 import pycolmap
 from tqdm import tqdm
@@ -40,6 +39,7 @@ from colmap_vc.estimators import (
     fit,
     prior,
 )
+from colmap_vc.image_io import read_image as read_stored
 from colmap_vc.structs import BoolArray, ImagePrior, PersonPrior, ScenePriors
 
 logger = logging.getLogger(__name__)
@@ -190,7 +190,7 @@ def _with_appearance(
 
 def read_image(path: Path) -> np.ndarray | None:
     """RGB uint8 pixels as stored, ignoring EXIF orientation (as COLMAP reads them)."""
-    bgr = cv2.imread(str(path), cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION)
+    bgr = read_stored(path)
     return None if bgr is None else np.ascontiguousarray(bgr[:, :, ::-1])
 
 
@@ -242,12 +242,16 @@ def estimate_priors(
         raise ValueError(f"{len(missing)} image(s) have no camera, e.g. {missing[0]!r}")
     images: dict[str, ImagePrior] = {}
     skipped: dict[str, str] = {}
+    unusable: set[str] = set()
     reports: list[PersonReport] = []
     seconds: dict[str, float] = {}
     with open_pose(options) as pose:
         for name in tqdm(image_names, desc="priors", disable=not options.show_progress):
             start = time.perf_counter()
             rgb = read_image(Path(image_dir) / name)
+            camera = cameras[name]
+            if rgb is None or rgb.shape[:2] != (camera.height, camera.width):
+                unusable.add(name)
             if rgb is None:
                 reason: str | None = f"cannot read {Path(image_dir) / name}"
                 images[name] = ImagePrior(image_name=name, persons=())
@@ -266,5 +270,10 @@ def estimate_priors(
                 len(images[name].persons),
                 seconds[name],
             )
-    report = EstimatorReport(skipped=skipped, persons=tuple(reports), seconds=seconds)
+    report = EstimatorReport(
+        skipped=skipped,
+        persons=tuple(reports),
+        seconds=seconds,
+        unusable=frozenset(unusable),
+    )
     return ScenePriors(images=images), report
