@@ -39,7 +39,8 @@ def prepare_output_dir(
     option = "--output-path" if command == "map" else "the output folder"
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"{option} {out} is a file, not a folder")
-    if out.is_dir() and any(out.iterdir()):
+    # A folder holding only the marker is what a failed run of ``command`` left.
+    if out.is_dir() and any(p.name != marker_name(command) for p in out.iterdir()):
         if not overwrite:
             raise FileExistsError(f"{out} exists and is not empty (use --overwrite)")
         resolved = out.resolve()

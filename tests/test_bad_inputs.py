@@ -563,6 +563,21 @@ def test_bad_input(
     assert not lost_or_changed, lost_or_changed
 
 
+def test_map_names_the_users_database_and_runs_again(
+    projects: dict, tmp_path: Path, capfd
+) -> None:
+    # map works on a copy of the database; its errors name the user's file, and
+    # the output folder a failed run left (only its marker) takes the next run
+    # without --overwrite.
+    project = _project(projects, CASES[0], tmp_path)
+    _sql("DELETE FROM keypoints")(project)
+    for _ in range(2):
+        code, output = _run(_map(project), capfd)
+        assert code == 1, output
+        assert f"{project / 'database.db'} has no keypoints" in output, output
+        assert ".work-" not in output and "--overwrite" not in output, output
+
+
 def test_matrix_is_large_enough() -> None:
     assert len(CASES) >= 40
 

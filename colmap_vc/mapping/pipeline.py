@@ -88,10 +88,16 @@ def run(
     with tempfile.TemporaryDirectory(prefix=".work-", dir=output_dir) as work:
         copy = database.snapshot(database_path, Path(work) / "copy.db")
         ordered = Path(work) / "database.db"
-        ids = canonical.canonical_copy(copy, ordered)
-        rec, summary = _map_copy(
-            ordered if ids else copy, image_dir, output_dir, options, priors_path
-        )
+        try:
+            ids = canonical.canonical_copy(copy, ordered)
+            rec, summary = _map_copy(
+                ordered if ids else copy, image_dir, output_dir, options, priors_path
+            )
+        except (ValueError, RuntimeError) as exc:
+            named = _naming(exc, (ordered, copy), database_path)
+            if named is exc:
+                raise
+            raise named from exc
     if ids is not None:  # the models get the user's ids back
         for folder in sorted(output_dir.iterdir()):
             if (folder / "images.bin").is_file():
@@ -112,6 +118,19 @@ def run(
     for name, reason in summary.unregistered.items():
         logger.info("not registered: %s: %s", name, reason)
     return rec, summary
+
+
+def _naming(exc: Exception, copies: tuple[Path, ...], database_path: Path) -> Exception:
+    """``exc`` with the working copies' paths replaced by the user's database."""
+    message = str(exc)
+    for path in copies:
+        message = message.replace(str(path), str(database_path))
+    if message == str(exc):
+        return exc
+    try:
+        return type(exc)(message)
+    except TypeError:  # an exception type with other arguments: as it was
+        return exc
 
 
 def _map_copy(
