@@ -132,7 +132,7 @@ def test_missing_inputs(dome_scene, tmp_path):
 
 
 def test_without_verified_pairs_meshes_and_keypoint_tracks_still_register(
-    dome_scene, tmp_path
+    dome_scene, tmp_path, caplog
 ):
     """No two-view geometry at all (every RANSAC failed): the auto mapper places the
     cameras by mesh alignment and the keypoint BA refines them from identity tracks."""
@@ -141,6 +141,7 @@ def test_without_verified_pairs_meshes_and_keypoint_tracks_still_register(
     augment.run(db, dome_scene / "priors", augment.AugmentOptions(show_progress=False))
     with sqlite3.connect(db) as conn:
         conn.execute("DELETE FROM two_view_geometries")
+    caplog.set_level("INFO", logger="colmap_vc.mapping.choice")
     rec, summary = mapping.run(
         db,
         dome_scene / "images",
@@ -148,6 +149,9 @@ def test_without_verified_pairs_meshes_and_keypoint_tracks_still_register(
         mapping.MappingOptions(num_threads=2, show_progress=False),
     )
     assert summary.num_registered == 6
+    # It says why: there was no incremental model to judge (it read "contradicts
+    # the mesh prior (median 180 deg)").
+    assert "the incremental mapper found no model: mesh-initialised" in caplog.text
     models = sorted(p.name for p in (tmp_path / "sparse").iterdir())
     # The mesh-initialised model replaced the incremental one: one answer, at 0/
     # as COLMAP names it, no superseded model beside it.

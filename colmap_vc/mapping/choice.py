@@ -117,13 +117,19 @@ def _mesh_fallback(
                 deviation,
             )
         return models
-    logger.info(
-        "the incremental model %s: mesh-initialised mapping instead",
-        f"contradicts the mesh prior (median {deviation:.0f} deg > "
-        f"{options.max_prior_deviation_deg:.0f})"
-        if contradicts
-        else f"registers {num_best} images, the meshes place {placeable}",
-    )
+    if best is None:
+        why = "the incremental mapper found no model"
+    elif contradicts:
+        why = (
+            f"the incremental model contradicts the mesh prior (median "
+            f"{deviation:.0f} deg > {options.max_prior_deviation_deg:.0f})"
+        )
+    else:
+        why = (
+            f"the incremental model registers {num_best} images, the meshes "
+            f"place {placeable}"
+        )
+    logger.info("%s: mesh-initialised mapping instead", why)
     rec = strategies.mesh_initialised(
         inputs.database_path, image_dir, output_dir / "mesh", priors, options
     )
