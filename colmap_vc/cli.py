@@ -11,6 +11,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+import math
 import signal
 import sqlite3
 import sys
@@ -306,12 +307,28 @@ def _run_synth(cmd: Synth) -> int:
 def _run_eval(cmd: Eval) -> int:
     from .evaluation import evaluate_reconstruction, format_table
 
-    metrics = evaluate_reconstruction(
-        _load_model(cmd.pred_model), _load_model(cmd.gt_model)
-    )
+    pred, gt = _load_model(cmd.pred_model), _load_model(cmd.gt_model)
+    names = {im.name for im in pred.images.values()}
+    truth = {im.name for im in gt.images.values()}
+    if not names & truth:
+        raise ValueError(
+            f"none of the {len(names)} images of {cmd.pred_model} is in the "
+            f"ground truth {cmd.gt_model} (e.g. {min(names, default='-')!r} "
+            f"against {min(truth, default='-')!r}): compare models of the same "
+            "images"
+        )
+    if names - truth:
+        logger.warning(
+            "%d image(s) of the model are not in the ground truth, e.g. %s: "
+            "not evaluated",
+            len(names - truth),
+            min(names - truth),
+        )
+    metrics = evaluate_reconstruction(pred, gt)
     sys.stdout.write(format_table({"prediction": metrics}) + "\n")
     if cmd.output is not None:
-        cmd.output.write_text(json.dumps(metrics.to_dict(), indent=1))
+        payload = _without_nan(metrics.to_dict())
+        cmd.output.write_text(json.dumps(payload, indent=1, allow_nan=False))
         logger.info("metrics written to %s", cmd.output)
     if cmd.plot is not None:
         import numpy as np
@@ -324,6 +341,17 @@ def _run_eval(cmd: Eval) -> int:
         fig.savefig(cmd.plot, dpi=110)
         logger.info("error curve written to %s", cmd.plot)
     return 0
+
+
+def _without_nan(value: object) -> object:
+    """``value`` with every NaN or infinite float as None (JSON has neither)."""
+    if isinstance(value, float):
+        return value if math.isfinite(value) else None
+    if isinstance(value, dict):
+        return {k: _without_nan(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_without_nan(v) for v in value]
+    return value
 
 
 def _run_priors(cmd: Priors) -> int:

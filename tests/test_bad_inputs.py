@@ -28,6 +28,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 
+import pycolmap
 import pytest
 
 from colmap_vc import database
@@ -66,6 +67,15 @@ def _sql(*statements: str) -> Callable[[Path], None]:
         conn.close()
 
     return setup
+
+
+def _renamed_model(src: Path, dst: Path) -> None:
+    """The model at ``src`` with every image renamed, written to ``dst``."""
+    rec = pycolmap.Reconstruction(src)
+    for image in rec.images.values():
+        image.name = "other_" + image.name
+    dst.mkdir(parents=True)
+    rec.write(dst)
 
 
 def _corrupt_page(project: Path) -> None:
@@ -412,6 +422,12 @@ CASES = [
             str(p / "images"),
         ],
         "is a folder",
+    ),
+    Case(
+        "eval: a model of other images",
+        lambda p: ["eval", str(p / "other"), str(p / "gt" / "sparse")],
+        "none of the",
+        setup=lambda p: _renamed_model(p / "gt" / "sparse", p / "other"),
     ),
     Case(
         "report: no database",

@@ -113,6 +113,29 @@ def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
     assert main(["strip", str(db)]) == 0
 
 
+def test_eval_writes_strict_json_with_unregistered_images(dome_scene, tmp_path):
+    # An unregistered image's pairs have no rotation error: null in the JSON,
+    # not NaN (which JSON does not have).
+    import pycolmap
+
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    first = min(rec.images)
+    rec.deregister_frame(rec.image(first).frame_id)
+    (tmp_path / "pred").mkdir()
+    rec.write(tmp_path / "pred")
+    out = tmp_path / "m.json"
+    argv = ["eval", str(tmp_path / "pred"), str(dome_scene / "gt" / "sparse")]
+    assert main([*argv, "--output", str(out)]) == 0
+
+    def strict(constant: str) -> None:
+        raise ValueError(f"{constant} in the JSON")
+
+    metrics = json.loads(out.read_text(), parse_constant=strict)
+    unregistered = [p for p in metrics["pairs"] if not p["registered"]]
+    assert unregistered and all(p["rotation_deg"] is None for p in unregistered)
+    assert metrics["num_registered"] == len(rec.images) - 1
+
+
 def test_runtime_errors_exit_1(tmp_path):
     assert main(["eval", str(tmp_path / "nope"), str(tmp_path / "nope2")]) == 1
     assert (
