@@ -27,7 +27,11 @@ from .matching import (
 )
 from .pair_selection import select_pairs
 from .priors import read_priors
-from .static_cameras import merge_priors, parse_static_cameras
+from .static_cameras import (
+    merge_priors,
+    parse_static_cameras,
+    warn_if_static_cameras,
+)
 from .structs import (
     FloatArray,
     IndexArray,
@@ -437,11 +441,14 @@ def run(
     if options.use_classic_matches:
         classic_kp = {i: database.read_keypoints(database_path, i) for i in with_priors}
         classic_m = database.read_matches(database_path)
+    geometries = database.read_two_view_geometries(database_path)
+    if static is None:
+        warn_if_static_cameras(geometries, views)
     solved: set[Pair] = set()
     if options.max_classic_inliers > 0:
         solved = {
             p
-            for p, row in database.read_two_view_geometries(database_path).items()
+            for p, row in geometries.items()
             if len(row.inlier_matches) >= options.max_classic_inliers
         }
         if solved:

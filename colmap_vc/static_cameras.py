@@ -22,9 +22,12 @@ from __future__ import annotations
 import dataclasses
 import logging
 import re
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
+import numpy as np
+
+from .database import DatabaseViews, TwoViewGeometryRow
 from .structs import ImagePrior, ScenePriors
 
 logger = logging.getLogger(__name__)
@@ -145,3 +148,84 @@ def merge_priors(
             for k in range(len(priors.images[name].persons)):
                 groups[(name, k)] = ""
     return dataclasses.replace(priors, images=images), groups
+
+
+def same_view_pairs(
+    geometries: Mapping[tuple[int, int], TwoViewGeometryRow],
+    sizes: Mapping[int, tuple[int, int]],
+    min_inliers: int,
+    max_shift_px: float,
+) -> list[tuple[int, int, int]]:
+    """Image pairs whose classic matches sit at the same pixels: ``min_inliers``
+    or more inliers and a homography that moves no corner of the first image by
+    more than ``max_shift_px`` -> (image id 1, image id 2, inliers), most inliers
+    first. Frames of one static camera at two instants look so; two cameras,
+    or one that moved, do not (a parallax of a pixel is a few millimetres of
+    camera motion at the distance of the scene's background)."""
+    out = []
+    for (i, j), row in geometries.items():  # loop over pairs (one H each)
+        if row.H is None or len(row.inlier_matches) < min_inliers or i not in sizes:
+            continue
+        w, h = sizes[i]
+        corners = np.array([[0, 0, 1], [w, 0, 1], [0, h, 1], [w, h, 1]], float)
+        moved = corners @ row.H.T
+        if np.any(np.abs(moved[:, 2]) < 1e-12):
+            continue
+        shift = np.linalg.norm(moved[:, :2] / moved[:, 2:] - corners[:, :2], axis=1)
+        if shift.max() <= max_shift_px:
+            out.append((i, j, len(row.inlier_matches)))
+    return sorted(out, key=lambda t: (-t[2], t[0], t[1]))
+
+
+SAME_VIEW_MIN_INLIERS = 30
+"""Classic inliers a same-pixels pair needs (what COLMAP's mapper asks to
+register an image, abs_pose_min_num_inliers)."""
+SAME_VIEW_MAX_SHIFT_PX = 2.0
+"""Largest corner shift of such a pair's homography: pose2sim's frames of one
+camera at two instants shift by 0.5 px at most, two cameras by hundreds."""
+
+
+def warn_if_static_cameras(
+    geometries: Mapping[tuple[int, int], TwoViewGeometryRow], views: DatabaseViews
+) -> list[list[str]]:
+    """Warn when images match at the same pixels (:func:`same_view_pairs`) and
+    no static cameras were named: each frame would get its own pose, and the
+    people of different instants would be matched as the same people. Returns
+    the groups of such images (connected by same-pixel pairs), by name."""
+    sizes = {
+        int(i): (views.cameras[int(c)].width, views.cameras[int(c)].height)
+        for i, c in zip(views.image_ids, views.camera_ids, strict=True)
+    }
+    names = dict(zip(views.image_ids.tolist(), views.image_names, strict=True))
+    pairs = same_view_pairs(
+        geometries, sizes, SAME_VIEW_MIN_INLIERS, SAME_VIEW_MAX_SHIFT_PX
+    )
+    group: dict[int, int] = {}
+
+    def find(i: int) -> int:
+        while group.setdefault(i, i) != i:
+            i = group[i]
+        return i
+
+    for i, j, _ in pairs:  # loop over pairs (union-find)
+        a, b = find(i), find(j)
+        if a != b:
+            group[max(a, b)] = min(a, b)
+    members: dict[int, list[str]] = {}
+    for i in sorted(group):
+        members.setdefault(find(i), []).append(names[i])
+    groups = sorted(sorted(m) for m in members.values())
+    if groups:
+        example = ", ".join(groups[0][:4]) + (", ..." if len(groups[0]) > 4 else "")
+        logger.warning(
+            "%d image pair(s) match at the same pixels, in %d group(s) (e.g. %s): "
+            "frames of static cameras at several instants? Without "
+            "--static-cameras each frame gets its own pose and the people of "
+            "different instants are matched as the same people; give augment and "
+            "map --static-cameras with a pattern whose group names the camera "
+            '(docs/real-data.md, "Static cameras")',
+            len(pairs),
+            len(groups),
+            example,
+        )
+    return groups

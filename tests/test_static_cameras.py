@@ -14,7 +14,12 @@ from colmap_vc import cli, database
 from colmap_vc.evaluation import camera_distance_ratio
 from colmap_vc.mapping.outputs import static_members_left_out
 from colmap_vc.priors import read_priors, write_priors
-from colmap_vc.static_cameras import merge_priors, parse_static_cameras
+from colmap_vc.static_cameras import (
+    merge_priors,
+    parse_static_cameras,
+    same_view_pairs,
+    warn_if_static_cameras,
+)
 from colmap_vc.structs import ImagePrior, ScenePriors
 
 NAMES = [f"cam{c:02d}_t{t:03d}.jpg" for c in (1, 2, 3) for t in (10, 30)] + ["x.jpg"]
@@ -231,3 +236,50 @@ def test_uneven_instants_are_scaled_to_metres(dome_scene: Path, tmp_path: Path) 
     for t in ("_t2", "_t3"):  # the same camera at every instant
         truth.update({n.replace(".jpg", f"{t}.jpg"): truth[n] for n in (a, b, c)})
     assert camera_distance_ratio(poses, truth) == pytest.approx(1.0, abs=0.15)
+
+
+def test_frames_of_one_camera_without_static_cameras_are_pointed_out(
+    dome_scene: Path, tmp_path: Path, capfd
+) -> None:
+    """Frames of static cameras at two instants match at the same pixels: augment
+    without --static-cameras says so, with the groups, and is quiet with it."""
+    names = sorted(database.read_views(dome_scene / "database.db").image_names)[:3]
+    db, _, _ = _static_copies(dome_scene, tmp_path, names, background=True)
+    assert "same pixels" not in "".join(capfd.readouterr())  # it was given
+    groups = warn_if_static_cameras(
+        database.read_two_view_geometries(db), database.read_views(db)
+    )
+    assert groups == [[n, n.replace(".jpg", "_t2.jpg")] for n in names]
+    augment = ["augment", str(db), "--priors", str(tmp_path / "priors")]
+    assert cli.main([*augment, "--no-show-progress"]) == 0
+    output = "".join(capfd.readouterr())
+    assert "3 image pair(s) match at the same pixels, in 3 group(s)" in output
+
+
+def test_same_pixels_need_many_inliers_and_no_shift() -> None:
+    def row(H: np.ndarray, inliers: int) -> database.TwoViewGeometryRow:
+        return database.TwoViewGeometryRow(
+            image_id1=1,
+            image_id2=2,
+            inlier_matches=np.zeros((inliers, 2), np.int64),
+            config=5,
+            F=None,
+            E=None,
+            H=H,
+            qvec_wxyz=None,
+            tvec=None,
+        )
+
+    sizes = {1: (640, 480)}
+    shifted = np.eye(3)
+    shifted[0, 2] = 3.0  # three pixels to the right
+    turned = np.array([[1.0, -0.01, 0], [0.01, 1.0, 0], [0, 0, 1]])  # 0.6 deg
+    for H, inliers, found in (
+        (np.eye(3), 100, True),
+        (np.eye(3) * 2.0, 100, True),  # a homography's scale is free
+        (np.eye(3), 10, False),
+        (shifted, 100, False),
+        (turned, 100, False),
+    ):
+        got = same_view_pairs({(1, 2): row(H, inliers)}, sizes, 30, 2.0)
+        assert bool(got) is found, (H, inliers)
