@@ -332,6 +332,11 @@ CASES = [
         "image folder not found",
     ),
     Case(
+        "map: an image folder without the database's images",
+        lambda p: [*_map(p)[:3], str(p / "gt"), *_map(p)[4:]],
+        "none of the database's",
+    ),
+    Case(
         "map: output is a file",
         _map,
         "is a file",

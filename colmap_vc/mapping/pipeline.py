@@ -17,6 +17,7 @@ import dataclasses
 import logging
 import tempfile
 import time
+from collections.abc import Sequence
 from pathlib import Path
 
 import pycolmap
@@ -120,6 +121,28 @@ def run(
     return rec, summary
 
 
+def _check_image_folder(image_dir: Path, names: Sequence[str]) -> None:
+    """Refuse a folder that holds none of the database's images (a wrong
+    --image-path: the gravity step and the report read them); warn when some
+    are missing."""
+    missing = [n for n in names if not (image_dir / n).is_file()]
+    if names and len(missing) == len(names):
+        raise FileNotFoundError(
+            f"none of the database's {len(names)} images is in {image_dir} (e.g. "
+            f"{missing[0]}): --image-path must be the folder the features were "
+            "extracted from"
+        )
+    if missing:
+        logger.warning(
+            "%d of the database's %d images are not in %s (e.g. %s): no up from "
+            "their vertical lines",
+            len(missing),
+            len(names),
+            image_dir,
+            missing[0],
+        )
+
+
 def _naming(exc: Exception, copies: tuple[Path, ...], database_path: Path) -> Exception:
     """``exc`` with the working copies' paths replaced by the user's database."""
     message = str(exc)
@@ -144,6 +167,7 @@ def _map_copy(
     pycolmap.set_random_seed(options.seed)
     t0 = time.perf_counter()
     inputs = read_inputs(database_path, options, priors_path)
+    _check_image_folder(image_dir, inputs.views.image_names)
     timings = {"read": time.perf_counter() - t0}
     lap = time.perf_counter()
     models, best_key = map_images(inputs, image_dir, output_dir, options)
