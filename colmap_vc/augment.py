@@ -26,7 +26,7 @@ from .matching import (
     PersonObservations,
 )
 from .pair_selection import select_pairs
-from .priors import read_priors
+from .priors import focal_mismatches, read_priors
 from .static_cameras import (
     merge_priors,
     parse_static_cameras,
@@ -421,6 +421,21 @@ def run(
     priors = read_priors(
         Path(priors_path), known_image_names=views.image_names, image_sizes=sizes
     )
+    focal = {
+        name: views.cameras[int(c)].mean_focal_length()
+        for name, c in zip(views.image_names, views.camera_ids, strict=True)
+    }
+    if other := focal_mismatches(priors, focal):
+        name = min(other)
+        logger.warning(
+            "the priors of %d image(s) were made with another focal length than "
+            "the database's camera (e.g. %s: %.0f px against %.0f px): the "
+            "meshes' depth and the people's size follow it; make the priors "
+            "again with `colmap-vc priors --database`",
+            len(other),
+            name,
+            *other[name],
+        )
     static = None
     groups: dict[tuple[str, int], str] | None = None
     if options.static_cameras:

@@ -323,6 +323,9 @@ def _parse_image(
             problem = f"{width}x{height}, but the database image is %dx%d" % db_size
             raise PriorsError(js.path, f"{where}.width", problem)
         size = db_size
+    focal = js.get(entry, "focal_px", (int, float), where, None)
+    if focal is not None and not focal > 0:
+        raise PriorsError(js.path, f"{where}.focal_px", f"{focal}, must be > 0")
     persons_doc = js.get(entry, "persons", list, where)
     rel = js.get(entry, "file", str, where)
     npz_path, source = js.open(open_npz, rel, f"{where}.file")
@@ -355,7 +358,11 @@ def _parse_image(
             seen_ids.add(meta["person_id"])
         arr = _Arrays(npz_path, source, f"p{i}/")
         persons.append(_parse_person(arr, meta, templates, size, uses))
-    return ImagePrior(image_name=name, persons=tuple(persons))
+    return ImagePrior(
+        image_name=name,
+        persons=tuple(persons),
+        focal_px=None if focal is None else float(focal),
+    )
 
 
 def _parse_doc(
@@ -426,6 +433,26 @@ def _load_npz(path: Path) -> dict[str, np.ndarray]:
         return arrays
     except Exception as exc:  # corrupt files raise many kinds (zip, zlib, parsing)
         raise PriorsError(path, key, f"unreadable .npz: {exc}") from exc
+
+
+def focal_mismatches(
+    priors: ScenePriors, focal_px: Mapping[str, float], max_ratio: float = 1.05
+) -> dict[str, tuple[float, float]]:
+    """Images whose priors were made with a focal length more than ``max_ratio``
+    from their database camera's ``focal_px`` -> (the priors', the database's).
+
+    The meshes' depth, and so the people's size and the metric scale, follow the
+    focal length they were fitted with: priors made with COLMAP's guess (1.2
+    times the larger side) and mapped with a calibration are 10-50 % off.
+    Default 5 %: the metric scale's own target."""
+    out = {}
+    for name, image in priors.images.items():  # loop over images
+        if image.focal_px is None or name not in focal_px:
+            continue
+        ratio = image.focal_px / focal_px[name]
+        if max(ratio, 1.0 / ratio) > max_ratio:
+            out[name] = (image.focal_px, float(focal_px[name]))
+    return out
 
 
 def read_priors(
@@ -538,6 +565,8 @@ def write_priors(
         entry: dict[str, Any] = {"file": f"images/{name}.npz"}
         if image_sizes is not None and name in image_sizes:
             entry["width"], entry["height"] = map(int, image_sizes[name])
+        if image.focal_px is not None:
+            entry["focal_px"] = float(image.focal_px)
         entry["persons"] = [
             {
                 "person_id": None if p.person_id is None else int(p.person_id),

@@ -95,6 +95,9 @@ class ImagePrior:
 
     image_name: str
     persons: tuple[PersonPrior, ...]
+    focal_px: float | None = None
+    """Mean focal length, pixels, of the camera the priors were made with (the
+    meshes' depth scales with it); None: not recorded."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)

@@ -196,6 +196,34 @@ def test_priors_of_no_database_image_fail_and_leave_the_database(dome_scene, tmp
     assert _checksums(db) == before
 
 
+def test_priors_of_another_focal_length_are_pointed_out(dome_scene, tmp_path, caplog):
+    # Priors made with COLMAP's guessed intrinsics, mapped with a calibration:
+    # the meshes' depth is off by the focal lengths' ratio; augment says so.
+    db = tmp_path / "database.db"
+    shutil.copyfile(dome_scene / "database.db", db)
+    views = database.read_views(db)
+    focal = {
+        n: views.cameras[int(c)].mean_focal_length()
+        for n, c in zip(views.image_names, views.camera_ids, strict=True)
+    }
+    priors = read_priors(dome_scene / "priors")
+    guessed = ScenePriors(
+        images={
+            n: dataclasses.replace(p, focal_px=1.3 * focal[n])
+            for n, p in priors.images.items()
+        }
+    )
+    faces = next(iter(priors.images.values())).persons[0].faces
+    write_priors(guessed, tmp_path / "priors", templates={"anny": faces})
+    caplog.set_level("WARNING", logger="colmap_vc.augment")
+    augment.run(
+        db,
+        tmp_path / "priors",
+        augment.AugmentOptions(show_progress=False, dry_run=True),
+    )
+    assert f"the priors of {len(priors.images)} image(s) were made with" in caplog.text
+
+
 def test_images_without_priors_are_skipped_with_a_reason(dome_scene, tmp_path, caplog):
     db = tmp_path / "database.db"
     shutil.copyfile(dome_scene / "database.db", db)

@@ -14,7 +14,7 @@ import numpy as np
 import pytest
 import trimesh
 
-from colmap_vc.priors import PriorsError, read_priors, write_priors
+from colmap_vc.priors import PriorsError, focal_mismatches, read_priors, write_priors
 from colmap_vc.structs import ImagePrior, PersonPrior, ScenePriors, SurfaceMap
 
 WIDTH, HEIGHT = 640, 480
@@ -132,6 +132,21 @@ def test_round_trip(priors: ScenePriors, priors_dir: Path) -> None:
         assert len(loaded.images[name].persons) == len(image.persons)
         for got, want in zip(loaded.images[name].persons, image.persons, strict=True):
             assert_same_person(got, want)
+
+
+def test_the_focal_length_the_priors_were_made_with(
+    priors: ScenePriors, tmp_path: Path
+) -> None:
+    # Recorded when known, and compared with the database's cameras: the
+    # meshes' depth follows the focal length they were fitted with.
+    name = next(iter(priors.images))
+    made = dataclasses.replace(priors.images[name], focal_px=1500.0)
+    write_priors(ScenePriors(images={name: made}), tmp_path / "p")
+    loaded = read_priors(tmp_path / "p")
+    assert loaded.images[name].focal_px == 1500.0
+    assert focal_mismatches(loaded, {name: 1480.0}) == {}
+    assert focal_mismatches(loaded, {name: 1250.0}) == {name: (1500.0, 1250.0)}
+    assert focal_mismatches(priors, {name: 1250.0}) == {}  # not recorded
 
 
 def test_read_json_path_and_subfolder(priors_dir: Path) -> None:
@@ -400,6 +415,7 @@ JSON_CASES = [
         f"{WHERE0}.persons[1].person_id",
         "appears twice",
     ),
+    (lambda doc: image0(doc).update(focal_px=0), f"{WHERE0}.focal_px", "> 0"),
     (
         lambda doc: image0(doc).update(file="images/nothing.npz"),
         f"{WHERE0}.file",

@@ -260,6 +260,9 @@ def estimate_priors(
                     pose, rgb, cameras[name], options, name
                 )
                 reports.extend(rep)
+            images[name] = dataclasses.replace(
+                images[name], focal_px=float(camera.mean_focal_length())
+            )
             if reason is not None:
                 skipped[name] = reason
                 logger.info("%s: skipped: %s", name, reason)
