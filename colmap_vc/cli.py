@@ -122,6 +122,8 @@ class Priors:
     3 also half-size squares (people far away; ~0.5 s more per image)."""
     no_progress: bool = False
     """No progress bar."""
+    overwrite: bool = False
+    """Replace the priors an earlier run wrote to OUTPUT."""
     verbose: bool = False
     """Debug logging."""
 
@@ -354,9 +356,34 @@ def _without_nan(value: object) -> object:
     return value
 
 
+def _priors_output(cmd: Priors) -> None:
+    """Refuse an OUTPUT that is not a priors folder, or is in the image folder;
+    an earlier run's priors are replaced only with --overwrite (priors.json is
+    written last: a failed run leaves them as they were)."""
+    out = cmd.output
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"--output {out} is a file, not a folder")
+    images = cmd.images.resolve()
+    if out.resolve() == images or images in out.resolve().parents:
+        raise FileExistsError(
+            f"--output {out} is inside the image folder {cmd.images}: the priors "
+            "would mix with the images; choose another folder"
+        )
+    if not out.is_dir() or not any(out.iterdir()):
+        return
+    if not (out / "priors.json").is_file():
+        raise FileExistsError(
+            f"--output {out} is not empty and holds no priors.json: choose an "
+            "empty or new folder (nothing was written)"
+        )
+    if not cmd.overwrite:
+        raise FileExistsError(f"{out} holds priors already (use --overwrite)")
+
+
 def _run_priors(cmd: Priors) -> int:
     from .estimators import EstimatorKind, EstimatorOptions, run_estimator
 
+    _priors_output(cmd)
     summary = run_estimator(
         cmd.images,
         cmd.output,

@@ -460,6 +460,21 @@ CASES = [
         "does not exist",
     ),
     Case(
+        "priors: into the image folder",
+        lambda p: ["priors", str(p / "images"), "--output", str(p / "images")],
+        "inside the image folder",
+    ),
+    Case(
+        "priors: over existing priors",
+        lambda p: ["priors", str(p / "images"), "--output", str(p / "priors")],
+        "holds priors already",
+    ),
+    Case(
+        "priors: into a folder of other files",
+        lambda p: ["priors", str(p / "images"), "--output", str(p / "gt")],
+        "holds no priors.json",
+    ),
+    Case(
         "priors: empty folder",
         lambda p: ["priors", str(p / "empty"), "--output", str(p / "p2")],
         "no images",
