@@ -12,7 +12,7 @@ import numpy as np
 import pycolmap
 import pytest
 
-from colmap_vc import augment, mapping
+from colmap_vc import augment, database, mapping
 from colmap_vc.baselines import colmap_incremental
 from colmap_vc.evaluation import (
     camera_distance_ratio,
@@ -433,3 +433,31 @@ def test_gravity_from_vertical_lines_is_measured_and_kept(
         truth = gt.find_image_with_name(name).cam_from_world().rotation.matrix()[:, 2]
         assert float(np.dot(camera["up_cam"], truth)) > 0.999
         assert camera["residual_deg"] < 1.0
+
+
+def test_two_images_placed_by_people_alone_come_with_a_warning(
+    dome_scene, tmp_path, caplog
+):
+    """Two views of people make a weak pair (pose2sim: 5-11 deg median): map
+    registers them and says so."""
+    from conftest import extract_database
+
+    views = database.read_views(dome_scene / "database.db")
+    camera = dict(zip(views.image_names, views.camera_ids.tolist(), strict=True))
+    names = sorted(views.image_names)[:2]
+    db = extract_database(
+        dome_scene / "images",
+        names,
+        {n: views.cameras[camera[n]] for n in names},
+        tmp_path / "pair.db",
+    )
+    augment.run(db, dome_scene / "priors", augment.AugmentOptions(show_progress=False))
+    caplog.set_level("WARNING", logger="colmap_vc.mapping.pipeline")
+    _, summary = mapping.run(
+        db,
+        dome_scene / "images",
+        tmp_path / "sparse",
+        mapping.MappingOptions(num_threads=2, show_progress=False),
+    )
+    assert summary.num_registered == 2
+    assert "two images placed by their people alone" in caplog.text

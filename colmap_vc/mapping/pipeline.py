@@ -223,6 +223,20 @@ def _map_copy(
     timings["gravity"] = time.perf_counter() - lap
     lap = time.perf_counter()
     scale = _metric_scale(best, inputs, options)
+    if best is not None and best.num_reg_images() == 2:
+        placed = classic_placed(
+            best,
+            inputs.num_classic,
+            options.keypoint_ba_options.min_classic_support,
+        )
+        if len(placed) < 2:
+            logger.warning(
+                "two images placed by their people alone: expect a relative "
+                "rotation several degrees off (pose2sim, one instant, two "
+                'cameras: median 5-11 deg; docs/results.md, "Real photos: fewer '
+                'cameras, fewer instants"); more cameras or instants of static '
+                "cameras pin it down"
+            )
     if best is not None and inputs.static is not None:
         add_static_members_inplace(best, inputs.static, inputs.views)
     if best is not None and (
