@@ -523,12 +523,16 @@ def run(
         timings_s=timings,
         write=write,
     )
+    with_people = sum(
+        1 for n in views.image_names if n in priors.images and priors.images[n].persons
+    )
     logger.info(
-        "augment%s: %d/%d images with priors, %d pairs with VCs, %d verified, "
-        "%d VCs (%d inliers)",
+        "augment%s: %d/%d images with priors (%d with people), %d pairs with VCs, "
+        "%d verified, %d VCs (%d inliers)",
         " (dry run)" if options.dry_run else "",
         summary.num_images_with_priors,
         summary.num_images,
+        with_people,
         len(summary.pairs),
         summary.num_verified_pairs,
         sum(p.num_vcs for p in summary.pairs),

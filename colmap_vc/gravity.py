@@ -384,7 +384,11 @@ def measure_gravity(
             repeats=len(parts),
         )
         if found is None:
-            logger.info("gravity: %s: no vertical lines", key)
+            logger.info(
+                "gravity: %s: no vertical direction (too few vertical lines, or "
+                "two vanishing points with as many lines)",
+                key,
+            )
             continue
         up, sigma, lines = found
         support = len(lines.normal)
