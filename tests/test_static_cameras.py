@@ -198,7 +198,7 @@ def test_one_pose_per_static_camera_end_to_end(
 
 
 def test_two_static_cameras_are_mapped_from_their_own_pair(
-    dome_scene: Path, tmp_path: Path
+    dome_scene: Path, tmp_path: Path, capfd
 ) -> None:
     """Two static cameras over two instants: the two-view start takes the pair of
     the two cameras, not the two instants of one camera (the same background, the
@@ -209,8 +209,11 @@ def test_two_static_cameras_are_mapped_from_their_own_pair(
     truth = {im.name: im.cam_from_world().matrix() for im in gt.images.values()}
     a, b = sorted(truth)[:2]
     db, images, all_names = _static_copies(dome_scene, tmp_path, [a, b], True)
+    capfd.readouterr()
     poses = _map_poses(db, images, tmp_path / "sparse")
     assert sorted(poses) == all_names
+    # Two cameras over two instants are not the weak two-image case.
+    assert "two images placed by their people alone" not in "".join(capfd.readouterr())
     rel = poses[b][:, :3] @ poses[a][:, :3].T
     rel_gt = truth[b][:, :3] @ truth[a][:, :3].T
     cos = np.clip((np.trace(rel @ rel_gt.T) - 1) / 2, -1.0, 1.0)

@@ -223,7 +223,7 @@ def _map_copy(
     timings["gravity"] = time.perf_counter() - lap
     lap = time.perf_counter()
     scale = _metric_scale(best, inputs, options)
-    if best is not None and best.num_reg_images() == 2:
+    if best is not None and best.num_reg_images() == 2 and inputs.static is None:
         placed = classic_placed(
             best,
             inputs.num_classic,
