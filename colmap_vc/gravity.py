@@ -14,8 +14,8 @@ camera that sees the same gravity must be turned so that they agree
 Per camera (a static camera: pooled over all its images, whose background is the
 same):
 
-1. Line segments (OpenCV's LSD) of at least ``min_segment_frac`` of the image's
-   larger side, outside the people's boxes (limbs are near-vertical and not
+1. Line segments (OpenCV's LSD) subtending at least ``min_segment_deg`` of the
+   camera's view, outside the people's boxes (limbs are near-vertical and not
    vertical), as planes through the camera centre (undistorted with the
    camera's model); the pieces of one broken edge joined into one line (one
    edge, one vote).
@@ -59,18 +59,18 @@ logger = logging.getLogger(__name__)
 class GravityOptions:
     """Options of the vertical vanishing point."""
 
-    min_segment_frac: float = 30.0 / 1920.0
-    """Shorter segments, as a fraction of the image's larger side, are left out
-    (also the margin around the people's boxes). The scene's lines scale with the
-    image: at 30 px on pose2sim's 1920-px frames every camera's up is within 1.6
-    deg of the calibration's. A fixed 30 px at half that size (960 px) dropped
-    the short verticals and kept a bundle of long oblique edges (a treadmill's
-    side, window blinds): cam02's up came out 4.6-5.5 deg off at all five
-    instants with a standard error of 0.4-0.7 deg; at 15 px the mean AUC@15 of
-    the five instants is 79.2 against 68.6 (69.3 without the ups;
-    docs/real-data.md, "Image size")."""
+    min_segment_deg: float = 1.0
+    """Shorter segments, by the angle they subtend at the camera (their length
+    over the focal length), are left out; also the margin around the people's
+    boxes. The scene's lines keep their angle when the image is resized or
+    cropped, the detector's endpoint precision (``endpoint_tol_px``) stays a
+    pixel. 1 deg is 29 px on pose2sim's cameras (f = 1678 px; the fixed 30 px
+    it replaces). A fixed 30 px on those frames halved (f = 839 px) dropped the
+    short verticals and kept a bundle of long oblique edges (a treadmill's side,
+    window blinds): cam02's up came out 4.6-5.5 deg off at all five instants
+    with a standard error of 0.4-0.7 deg (docs/real-data.md, "Image scale")."""
     min_segment_px: float | None = None
-    """The same in pixels, for every image (overrides ``min_segment_frac``)."""
+    """The same in pixels, for every image (overrides ``min_segment_deg``)."""
     endpoint_tol_px: float = 1.0
     """A segment supports a vanishing point when both its endpoints lie within
     this of the line from its midpoint to the point (module doc)."""
@@ -115,7 +115,7 @@ def min_segment_px(options: GravityOptions, camera: pycolmap.Camera) -> float:
     """The shortest segment kept in ``camera``'s images, pixels."""
     if options.min_segment_px is not None:
         return options.min_segment_px
-    return options.min_segment_frac * max(camera.width, camera.height)
+    return float(np.radians(options.min_segment_deg)) * camera.mean_focal_length()
 
 
 def people_up(persons: Sequence[PersonPrior]) -> FloatArray | None:

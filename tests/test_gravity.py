@@ -120,11 +120,11 @@ def test_segments_inside_the_people_are_left_out(rng) -> None:
     assert np.all(right.midpoint[:, 0] * 700.0 + 320.0 >= 320.0 - 1)
 
 
-def test_the_shortest_segment_follows_the_image_size(rng) -> None:
-    # The same short edges (20-40 px at 960 px, 40-80 px at 1920 px; LSD finds
-    # both sides of each) drawn at
-    # two sizes: the threshold is a fraction of the image, so both keep them all;
-    # a fixed 30 px kept about half of them at the smaller size.
+def test_the_shortest_segment_follows_the_image_scale(rng) -> None:
+    # The same short edges (20-40 px at f = 700 px, 40-80 px at f = 1400 px;
+    # LSD finds both sides of each) drawn at two scales: the threshold is an
+    # angle (12 and 24 px), so both keep them all; a fixed 30 px kept about half
+    # of them at the smaller scale.
     small, large = (
         _camera(),
         pycolmap.Camera(
@@ -143,8 +143,14 @@ def test_the_shortest_segment_follows_the_image_size(rng) -> None:
         if scale == 1:
             fixed = GravityOptions(min_segment_px=30.0)
             kept["fixed"] = len(detect_segments(image, cam, none, fixed).normal)
-    assert min_segment_px(GravityOptions(), small) == pytest.approx(15.0)
-    assert min_segment_px(GravityOptions(), large) == pytest.approx(30.0)
+    # The threshold is an angle: it follows the focal length, not the image size.
+    one_degree = np.radians(1.0)
+    assert min_segment_px(GravityOptions(), small) == pytest.approx(700 * one_degree)
+    assert min_segment_px(GravityOptions(), large) == pytest.approx(1400 * one_degree)
+    cropped = pycolmap.Camera(
+        model="PINHOLE", width=640, height=640, params=[1400, 1400, 320, 320]
+    )
+    assert min_segment_px(GravityOptions(), cropped) == pytest.approx(1400 * one_degree)
     assert kept[1] == pytest.approx(kept[2], rel=0.1), kept
     assert kept["fixed"] < 0.75 * kept[1], kept
 
