@@ -49,7 +49,7 @@ _DTYPES = {"f": ("f", "float32 or float64"), "i": ("iu", "int32"), "b": ("b", "b
 _JSON_TYPES = {dict: "object", list: "array", str: "string", int: "integer"}
 _KEYS = {
     "root": {"format", "version", "templates", "images"},
-    "image": {"file", "width", "height", "persons"},
+    "image": {"file", "width", "height", "focal_px", "persons"},
     "person": {"person_id", "confidence", "template"},
 }
 _PERSON_KEY = re.compile(r"p(\d+)/(.+)")
