@@ -59,16 +59,21 @@ logger = logging.getLogger(__name__)
 class GravityOptions:
     """Options of the vertical vanishing point."""
 
-    min_segment_deg: float = 1.0
+    min_segment_deg: float = 1.0244
     """Shorter segments, by the angle they subtend at the camera (their length
     over the focal length), are left out; also the margin around the people's
     boxes. The scene's lines keep their angle when the image is resized or
     cropped, the detector's endpoint precision (``endpoint_tol_px``) stays a
-    pixel. 1 deg is 29 px on pose2sim's cameras (f = 1678 px; the fixed 30 px
-    it replaces). A fixed 30 px on those frames halved (f = 839 px) dropped the
-    short verticals and kept a bundle of long oblique edges (a treadmill's side,
-    window blinds): cam02's up came out 4.6-5.5 deg off at all five instants
-    with a standard error of 0.4-0.7 deg (docs/real-data.md, "Image scale")."""
+    pixel. 1.0244 deg is 30 px on pose2sim's cameras (f = 1678 px), where the
+    step was developed: the results there are those of a fixed 30 px. At a
+    round 1 deg (29 px there) the 2-camera subsets of pose2sim_multi moved by
+    up to 29 deg per pair (33.9 against 4.9 deg at t030 cam03-cam04; 51.9
+    against 56.5 AUC@15 pooled): with two cameras the up decides, and a few
+    segments near the threshold decide the up. A fixed 30 px on those frames
+    halved (f = 839 px) dropped the short verticals and kept a bundle of long
+    oblique edges (a treadmill's side, window blinds): cam02's up came out
+    4.6-5.5 deg off at all five instants with a standard error of 0.4-0.7 deg
+    (docs/real-data.md, "Image scale")."""
     min_segment_px: float | None = None
     """The same in pixels, for every image (overrides ``min_segment_deg``)."""
     endpoint_tol_px: float = 1.0

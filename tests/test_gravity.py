@@ -123,7 +123,7 @@ def test_segments_inside_the_people_are_left_out(rng) -> None:
 def test_the_shortest_segment_follows_the_image_scale(rng) -> None:
     # The same short edges (20-40 px at f = 700 px, 40-80 px at f = 1400 px;
     # LSD finds both sides of each) drawn at two scales: the threshold is an
-    # angle (12 and 24 px), so both keep them all; a fixed 30 px kept about half
+    # angle (12.5 and 25 px), so both keep them all; a fixed 30 px kept about half
     # of them at the smaller scale.
     small, large = (
         _camera(),
@@ -144,7 +144,7 @@ def test_the_shortest_segment_follows_the_image_scale(rng) -> None:
             fixed = GravityOptions(min_segment_px=30.0)
             kept["fixed"] = len(detect_segments(image, cam, none, fixed).normal)
     # The threshold is an angle: it follows the focal length, not the image size.
-    one_degree = np.radians(1.0)
+    one_degree = np.radians(GravityOptions().min_segment_deg)
     assert min_segment_px(GravityOptions(), small) == pytest.approx(700 * one_degree)
     assert min_segment_px(GravityOptions(), large) == pytest.approx(1400 * one_degree)
     cropped = pycolmap.Camera(
