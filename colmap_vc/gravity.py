@@ -14,11 +14,11 @@ camera that sees the same gravity must be turned so that they agree
 Per camera (a static camera: pooled over all its images, whose background is the
 same):
 
-1. Line segments (OpenCV's LSD) subtending at least ``min_segment_deg`` of the
-   camera's view, outside the people's boxes (limbs are near-vertical and not
-   vertical), as planes through the camera centre (undistorted with the
-   camera's model); the pieces of one broken edge joined into one line (one
-   edge, one vote).
+1. Line segments (OpenCV's LSD) of at least ``min_segment_px`` (or
+   ``min_segment_deg`` of the camera's view), outside the people's boxes
+   (limbs are near-vertical and not vertical), as planes through the camera
+   centre (undistorted with the camera's model); the pieces of one broken edge
+   joined into one line (one edge, one vote).
 2. The vanishing point nearest the people's up: the people stand upright, so the
    direction from their feet to their heads (the major axis of each person's
    mesh) is gravity within ``max_hint_deg``. RANSAC over pairs of segments; a
@@ -59,23 +59,22 @@ logger = logging.getLogger(__name__)
 class GravityOptions:
     """Options of the vertical vanishing point."""
 
+    min_segment_px: float | None = 30.0
+    """Shorter segments are left out (also the margin around the people's
+    boxes), pixels; None: ``min_segment_deg`` of the camera's view instead. 30 px
+    is what the step was developed and measured with on pose2sim's 1920-px
+    frames. It does not follow the image's scale: on those frames halved
+    (f = 839 px) it dropped the short verticals and kept a bundle of long oblique
+    edges (a treadmill's side, window blinds), and cam02's up came out 4.6-5.5
+    deg off at all five instants with a standard error of 0.4-0.7 deg; the angle
+    (15 px there) fixed that. The angle is not the default: on the synthetic
+    640-px scenes it admits 10-px texture edges as verticals, and the wrong ups
+    broke a model SIFT had placed (tests/test_mapping.py); at a round 1 deg, a
+    few segments near the threshold moved pose2sim_multi's 2-camera pairs by up
+    to 29 deg (docs/real-data.md, "Image scale")."""
     min_segment_deg: float = 1.0244
-    """Shorter segments, by the angle they subtend at the camera (their length
-    over the focal length), are left out; also the margin around the people's
-    boxes. The scene's lines keep their angle when the image is resized or
-    cropped, the detector's endpoint precision (``endpoint_tol_px``) stays a
-    pixel. 1.0244 deg is 30 px on pose2sim's cameras (f = 1678 px), where the
-    step was developed: the results there are those of a fixed 30 px. At a
-    round 1 deg (29 px there) the 2-camera subsets of pose2sim_multi moved by
-    up to 29 deg per pair (33.9 against 4.9 deg at t030 cam03-cam04; 51.9
-    against 56.5 AUC@15 pooled): with two cameras the up decides, and a few
-    segments near the threshold decide the up. A fixed 30 px on those frames
-    halved (f = 839 px) dropped the short verticals and kept a bundle of long
-    oblique edges (a treadmill's side, window blinds): cam02's up came out
-    4.6-5.5 deg off at all five instants with a standard error of 0.4-0.7 deg
-    (docs/real-data.md, "Image scale")."""
-    min_segment_px: float | None = None
-    """The same in pixels, for every image (overrides ``min_segment_deg``)."""
+    """With ``min_segment_px`` None: the shortest segment by the angle it
+    subtends at the camera (1.0244 deg is 30 px at pose2sim's f = 1678 px)."""
     endpoint_tol_px: float = 1.0
     """A segment supports a vanishing point when both its endpoints lie within
     this of the line from its midpoint to the point (module doc)."""

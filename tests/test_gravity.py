@@ -133,24 +133,26 @@ def test_the_shortest_segment_follows_the_image_scale(rng) -> None:
     )
     starts = np.c_[rng.uniform(40, 600, 40), rng.uniform(40, 880, 40)]
     lengths = rng.uniform(20, 40, 40)
+    angle = GravityOptions(min_segment_px=None)  # the threshold as an angle
     kept = {}
     for cam, scale in ((small, 1), (large, 2)):
         image = np.full((cam.height, cam.width), 200, np.uint8)
         for (x, y), n in zip(starts * scale, lengths * scale, strict=True):
             cv2.line(image, (int(x), int(y)), (int(x), int(y + n)), 20, 2 * scale)
         none = np.zeros(image.shape, bool)
-        kept[scale] = len(detect_segments(image, cam, none, GravityOptions()).normal)
+        kept[scale] = len(detect_segments(image, cam, none, angle).normal)
         if scale == 1:
             fixed = GravityOptions(min_segment_px=30.0)
             kept["fixed"] = len(detect_segments(image, cam, none, fixed).normal)
     # The threshold is an angle: it follows the focal length, not the image size.
-    one_degree = np.radians(GravityOptions().min_segment_deg)
-    assert min_segment_px(GravityOptions(), small) == pytest.approx(700 * one_degree)
-    assert min_segment_px(GravityOptions(), large) == pytest.approx(1400 * one_degree)
+    one_degree = np.radians(angle.min_segment_deg)
+    assert min_segment_px(angle, small) == pytest.approx(700 * one_degree)
+    assert min_segment_px(angle, large) == pytest.approx(1400 * one_degree)
     cropped = pycolmap.Camera(
         model="PINHOLE", width=640, height=640, params=[1400, 1400, 320, 320]
     )
-    assert min_segment_px(GravityOptions(), cropped) == pytest.approx(1400 * one_degree)
+    assert min_segment_px(angle, cropped) == pytest.approx(1400 * one_degree)
+    assert min_segment_px(GravityOptions(), small) == 30.0  # the default: pixels
     assert kept[1] == pytest.approx(kept[2], rel=0.1), kept
     assert kept["fixed"] < 0.75 * kept[1], kept
 
