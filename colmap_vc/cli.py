@@ -11,7 +11,6 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
-import math
 import signal
 import sqlite3
 import sys
@@ -329,7 +328,9 @@ def _run_eval(cmd: Eval) -> int:
     metrics = evaluate_reconstruction(pred, gt)
     sys.stdout.write(format_table({"prediction": metrics}) + "\n")
     if cmd.output is not None:
-        payload = _without_nan(metrics.to_dict())
+        from .outputs import jsonable
+
+        payload = jsonable(metrics.to_dict())
         cmd.output.write_text(json.dumps(payload, indent=1, allow_nan=False))
         logger.info("metrics written to %s", cmd.output)
     if cmd.plot is not None:
@@ -343,17 +344,6 @@ def _run_eval(cmd: Eval) -> int:
         fig.savefig(cmd.plot, dpi=110)
         logger.info("error curve written to %s", cmd.plot)
     return 0
-
-
-def _without_nan(value: object) -> object:
-    """``value`` with every NaN or infinite float as None (JSON has neither)."""
-    if isinstance(value, float):
-        return value if math.isfinite(value) else None
-    if isinstance(value, dict):
-        return {k: _without_nan(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_without_nan(v) for v in value]
-    return value
 
 
 def _priors_output(cmd: Priors) -> None:

@@ -8,6 +8,7 @@ nothing removed (docs/database.md, "What colmap-vc never does").
 
 from __future__ import annotations
 
+import math
 import shutil
 from collections.abc import Sequence
 from os import PathLike
@@ -68,7 +69,10 @@ def prepare_output_dir(
 
 
 def jsonable(value: object) -> object:
-    """``value`` (dicts, lists, numbers, text; anything else as text) for json.dump."""
+    """``value`` (dicts, lists, numbers, text; anything else as text) for json.dump;
+    a NaN or infinite float is None (JSON has neither)."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
     if isinstance(value, dict):
         return {k: jsonable(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):

@@ -26,6 +26,8 @@ from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 
 import numpy as np
+from scipy.sparse import csr_matrix
+from scipy.sparse.csgraph import connected_components
 
 from .database import DatabaseViews, TwoViewGeometryRow
 from .structs import ImagePrior, ScenePriors
@@ -200,32 +202,27 @@ def warn_if_static_cameras(
     pairs = same_view_pairs(
         geometries, sizes, SAME_VIEW_MIN_INLIERS, SAME_VIEW_MAX_SHIFT_PX
     )
-    group: dict[int, int] = {}
-
-    def find(i: int) -> int:
-        while group.setdefault(i, i) != i:
-            i = group[i]
-        return i
-
-    for i, j, _ in pairs:  # loop over pairs (union-find)
-        a, b = find(i), find(j)
-        if a != b:
-            group[max(a, b)] = min(a, b)
-    members: dict[int, list[str]] = {}
-    for i in sorted(group):
-        members.setdefault(find(i), []).append(names[i])
-    groups = sorted(sorted(m) for m in members.values())
-    if groups:
-        example = ", ".join(groups[0][:4]) + (", ..." if len(groups[0]) > 4 else "")
-        logger.warning(
-            "%d image pair(s) match at the same pixels, in %d group(s) (e.g. %s): "
-            "frames of static cameras at several instants? Without "
-            "--static-cameras each frame gets its own pose and the people of "
-            "different instants are matched as the same people; give augment and "
-            "map --static-cameras with a pattern whose group names the camera "
-            '(docs/real-data.md, "Static cameras")',
-            len(pairs),
-            len(groups),
-            example,
-        )
+    if not pairs:
+        return []
+    ids = np.array(sorted({i for p in pairs for i in p[:2]}), dtype=np.int64)
+    edges = np.searchsorted(ids, np.array([p[:2] for p in pairs]).reshape(-1, 2))
+    graph = csr_matrix(
+        (np.ones(len(edges), bool), (edges[:, 0], edges[:, 1])), shape=(len(ids),) * 2
+    )
+    _, label = connected_components(graph, directed=False)
+    groups = sorted(
+        sorted(names[int(i)] for i in ids[label == k]) for k in np.unique(label)
+    )
+    example = ", ".join(groups[0][:4]) + (", ..." if len(groups[0]) > 4 else "")
+    logger.warning(
+        "%d image pair(s) match at the same pixels, in %d group(s) (e.g. %s): "
+        "frames of static cameras at several instants? Without "
+        "--static-cameras each frame gets its own pose and the people of "
+        "different instants are matched as the same people; give augment and "
+        "map --static-cameras with a pattern whose group names the camera "
+        '(docs/real-data.md, "Static cameras")',
+        len(pairs),
+        len(groups),
+        example,
+    )
     return groups
