@@ -14,11 +14,11 @@ camera that sees the same gravity must be turned so that they agree
 Per camera (a static camera: pooled over all its images, whose background is the
 same):
 
-1. Line segments (OpenCV's LSD) of at least ``min_segment_px`` (or
-   ``min_segment_deg`` of the camera's view), outside the people's boxes
-   (limbs are near-vertical and not vertical), as planes through the camera
-   centre (undistorted with the camera's model); the pieces of one broken edge
-   joined into one line (one edge, one vote).
+1. Line segments (OpenCV's LSD) of at least ``min_segment_deg`` of the
+   camera's view and ``min_segment_floor_px`` (or a fixed ``min_segment_px``),
+   outside the people's boxes (limbs are near-vertical and not vertical), as
+   planes through the camera centre (undistorted with the camera's model); the
+   pieces of one broken edge joined into one line (one edge, one vote).
 2. The vanishing point nearest the people's up: the people stand upright, so the
    direction from their feet to their heads (the major axis of each person's
    mesh) is gravity within ``max_hint_deg``. RANSAC over pairs of segments; a
@@ -59,22 +59,28 @@ logger = logging.getLogger(__name__)
 class GravityOptions:
     """Options of the vertical vanishing point."""
 
-    min_segment_px: float | None = 30.0
+    min_segment_px: float | None = None
     """Shorter segments are left out (also the margin around the people's
-    boxes), pixels; None: ``min_segment_deg`` of the camera's view instead. 30 px
-    is what the step was developed and measured with on pose2sim's 1920-px
-    frames. It does not follow the image's scale: on those frames halved
-    (f = 839 px) it dropped the short verticals and kept a bundle of long oblique
-    edges (a treadmill's side, window blinds), and cam02's up came out 4.6-5.5
-    deg off at all five instants with a standard error of 0.4-0.7 deg; the angle
-    (15 px there) fixed that. The angle is not the default: on the synthetic
-    640-px scenes it admits 10-px texture edges as verticals, and the wrong ups
-    broke a model SIFT had placed (tests/test_mapping.py); at a round 1 deg, a
-    few segments near the threshold moved pose2sim_multi's 2-camera pairs by up
-    to 29 deg (docs/real-data.md, "Image scale")."""
+    boxes), pixels; None (the default): ``min_segment_deg`` of the camera's
+    view, but no fewer than ``min_segment_floor_px``. A fixed value does not
+    follow the image's scale: at 30 px, the value the step was first measured
+    with on pose2sim's 1920-px frames, those frames halved (f = 839 px) lost
+    their short verticals, a bundle of long oblique edges (a treadmill's side,
+    window blinds) won, and cam02's up came out 4.6-5.5 deg off at all five
+    instants with a standard error of 0.4-0.7 deg (docs/real-data.md, "Image
+    scale")."""
     min_segment_deg: float = 1.0244
-    """With ``min_segment_px`` None: the shortest segment by the angle it
-    subtends at the camera (1.0244 deg is 30 px at pose2sim's f = 1678 px)."""
+    """The shortest segment by the angle it subtends at the camera: 1.0244 deg
+    is 30 px at pose2sim's f = 1678 px, 15 px at half its size. An angle, not a
+    fraction of the image: a crop shrinks the image, not the scene."""
+    min_segment_floor_px: float = 15.0
+    """The angle's floor, pixels. A segment L px long supports every vanishing
+    direction within asin(2 ``endpoint_tol_px`` / L) of its own: 7.7 deg at 15
+    px, 11.5 deg at 10 px, half of the ``max_hint_deg`` search cone, where
+    short texture edges vote for anything. On the synthetic 640-px room (the
+    angle is 9-11 px there) the bare angle took such edges for verticals and
+    their ups broke a model SIFT had placed (tests/test_mapping.py); with a
+    floor of 10, 12, 15 or 20 px the test passes."""
     endpoint_tol_px: float = 1.0
     """A segment supports a vanishing point when both its endpoints lie within
     this of the line from its midpoint to the point (module doc)."""
@@ -119,7 +125,8 @@ def min_segment_px(options: GravityOptions, camera: pycolmap.Camera) -> float:
     """The shortest segment kept in ``camera``'s images, pixels."""
     if options.min_segment_px is not None:
         return options.min_segment_px
-    return float(np.radians(options.min_segment_deg)) * camera.mean_focal_length()
+    angle = float(np.radians(options.min_segment_deg)) * camera.mean_focal_length()
+    return max(angle, options.min_segment_floor_px)
 
 
 def people_up(persons: Sequence[PersonPrior]) -> FloatArray | None:

@@ -123,8 +123,8 @@ def test_segments_inside_the_people_are_left_out(rng) -> None:
 def test_the_shortest_segment_follows_the_image_scale(rng) -> None:
     # The same short edges (20-40 px at f = 700 px, 40-80 px at f = 1400 px;
     # LSD finds both sides of each) drawn at two scales: the threshold is an
-    # angle (12.5 and 25 px), so both keep them all; a fixed 30 px kept about half
-    # of them at the smaller scale.
+    # angle (its 15 px floor and 25 px), so both keep them all; a fixed 30 px
+    # kept about half of them at the smaller scale.
     small, large = (
         _camera(),
         pycolmap.Camera(
@@ -133,7 +133,7 @@ def test_the_shortest_segment_follows_the_image_scale(rng) -> None:
     )
     starts = np.c_[rng.uniform(40, 600, 40), rng.uniform(40, 880, 40)]
     lengths = rng.uniform(20, 40, 40)
-    angle = GravityOptions(min_segment_px=None)  # the threshold as an angle
+    angle = GravityOptions()  # the threshold as an angle, with a floor in pixels
     kept = {}
     for cam, scale in ((small, 1), (large, 2)):
         image = np.full((cam.height, cam.width), 200, np.uint8)
@@ -146,13 +146,13 @@ def test_the_shortest_segment_follows_the_image_scale(rng) -> None:
             kept["fixed"] = len(detect_segments(image, cam, none, fixed).normal)
     # The threshold is an angle: it follows the focal length, not the image size.
     one_degree = np.radians(angle.min_segment_deg)
-    assert min_segment_px(angle, small) == pytest.approx(700 * one_degree)
+    assert min_segment_px(angle, small) == angle.min_segment_floor_px  # 12.5 px
     assert min_segment_px(angle, large) == pytest.approx(1400 * one_degree)
     cropped = pycolmap.Camera(
         model="PINHOLE", width=640, height=640, params=[1400, 1400, 320, 320]
     )
     assert min_segment_px(angle, cropped) == pytest.approx(1400 * one_degree)
-    assert min_segment_px(GravityOptions(), small) == 30.0  # the default: pixels
+    assert min_segment_px(fixed, large) == 30.0  # a fixed threshold: pixels
     assert kept[1] == pytest.approx(kept[2], rel=0.1), kept
     assert kept["fixed"] < 0.75 * kept[1], kept
 
