@@ -20,6 +20,7 @@ from colmap_vc.gba.up import UpPriors, rotate_with_jacobian
 from colmap_vc.gravity import (
     Gravity,
     GravityOptions,
+    Segments,
     detect_segments,
     endpoint_distance,
     measure_gravity,
@@ -545,3 +546,65 @@ def test_a_large_problem_with_ups_solves_on_several_threads(dome_scene) -> None:
     assert run.returncode == 0, run.stderr[-2000:]
     threads = int(run.stdout.split("threads")[-1])
     assert threads > 1 or os.cpu_count() == 1  # else the test proves nothing
+
+
+def _segments_towards(
+    vp: np.ndarray, rng, count: int, length_px: float, f: float = 700.0
+) -> tuple[np.ndarray, np.ndarray]:
+    """``count`` segments of ``length_px`` at random places of a 640 x 960 image
+    at focal ``f``, each on the line from its midpoint to the vanishing
+    direction ``vp`` (camera frame): (ray1, ray2), z = 1."""
+    mid = np.c_[rng.uniform(-300, 300, count), rng.uniform(-450, 450, count)] / f
+    towards = vp[:2] / vp[2] - mid  # image direction to the vanishing point
+    towards /= np.linalg.norm(towards, axis=1, keepdims=True)
+    half = towards * length_px / 2.0 / f
+    one = np.ones((count, 1))
+    return np.c_[mid - half, one], np.c_[mid + half, one]
+
+
+def _as_segments(*parts: tuple[np.ndarray, np.ndarray]) -> Segments:
+    ray1 = np.concatenate([p[0] for p in parts])
+    ray2 = np.concatenate([p[1] for p in parts])
+    normal = np.cross(ray1, ray2)
+    return Segments(
+        ray1=ray1, ray2=ray2, normal=normal / np.linalg.norm(normal, axis=1)[:, None]
+    )
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_two_vanishing_points_of_the_same_lines_give_their_mean(seed) -> None:
+    # Edges of 60 px lean to two directions 4 deg apart, 20 each, and 30 more
+    # between them support both (each accepts 1.9 deg about its own): two
+    # directions explain about as many lines, most of them the same ones (these
+    # seeds: RANSAC finds the two). The up is their mean, its error covering
+    # the separation; it is not dropped.
+    rng = np.random.default_rng(seed)
+    R = _cam_from_world(20.0, 0.0)
+    truth = R @ WORLD_UP
+    tilt = Rotation.from_rotvec(np.radians(2.0) * np.array([0.0, 0.0, 1.0]))
+    segments = _as_segments(
+        _segments_towards(tilt.apply(truth), rng, 20, 60.0),
+        _segments_towards(tilt.inv().apply(truth), rng, 20, 60.0),
+        _segments_towards(truth, rng, 30, 60.0),
+    )
+    found = vertical_direction(segments, truth, 700.0, GravityOptions())
+    assert found is not None
+    up, sigma, _ = found
+    error = np.degrees(np.arccos(np.clip(up @ truth, -1, 1)))
+    assert np.degrees(sigma) > 1.0  # about half the separation, not the fit's 0.5
+    assert error < np.degrees(sigma), (error, np.degrees(sigma))
+
+
+def test_two_vanishing_points_of_different_lines_give_no_up(rng) -> None:
+    # Two bundles of long edges, 6 deg apart, 40 lines each, none of them on
+    # both: the image does not say which is the vertical.
+    R = _cam_from_world(20.0, 0.0)
+    truth = R @ WORLD_UP
+    tilt = Rotation.from_rotvec(np.radians(3.0) * np.array([0.0, 0.0, 1.0]))
+    segments = _as_segments(
+        _segments_towards(tilt.apply(truth), rng, 40, 150.0),
+        _segments_towards(tilt.inv().apply(truth), rng, 40, 150.0),
+    )
+    assert vertical_direction(segments, truth, 700.0, GravityOptions()) is None
+    alone = _as_segments(_segments_towards(tilt.apply(truth), rng, 40, 150.0))
+    assert vertical_direction(alone, truth, 700.0, GravityOptions()) is not None
