@@ -576,8 +576,8 @@ def test_two_vanishing_points_of_the_same_lines_give_their_mean(seed) -> None:
     # Edges of 60 px lean to two directions 4 deg apart, 20 each, and 30 more
     # between them support both (each accepts 1.9 deg about its own): two
     # directions explain about as many lines, most of them the same ones (these
-    # seeds: RANSAC finds the two). The up is their mean, its error covering
-    # the separation; it is not dropped.
+    # seeds: RANSAC finds the two). The up is kept, its error widened to reach
+    # the other direction; it is not dropped.
     rng = np.random.default_rng(seed)
     R = _cam_from_world(20.0, 0.0)
     truth = R @ WORLD_UP
@@ -591,7 +591,7 @@ def test_two_vanishing_points_of_the_same_lines_give_their_mean(seed) -> None:
     assert found is not None
     up, sigma, _ = found
     error = np.degrees(np.arccos(np.clip(up @ truth, -1, 1)))
-    assert np.degrees(sigma) > 1.0  # about half the separation, not the fit's 0.5
+    assert np.degrees(sigma) > 2.0  # about the separation, not the fit's 0.5
     assert error < np.degrees(sigma), (error, np.degrees(sigma))
 
 
