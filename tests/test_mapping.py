@@ -461,3 +461,35 @@ def test_two_images_placed_by_people_alone_come_with_a_warning(
     )
     assert summary.num_registered == 2
     assert "two images placed by their people alone" in caplog.text
+
+
+def test_colmaps_own_log_lines_only_with_debug_logging(
+    dome_scene, tmp_path, capfd, caplog
+):
+    """COLMAP's mapper writes its own lines (glog, to stderr): on a database it
+    can start no model from, an error line. Without --verbose `map` reports that
+    in its own words, so COLMAP's lines stay off; with it they are shown."""
+    import logging
+
+    from colmap_vc.mapping import strategies
+    from colmap_vc.mapping.options import MappingOptions
+
+    db = tmp_path / "nomatch.db"
+    shutil.copyfile(dome_scene / "database.db", db)
+    with sqlite3.connect(db) as conn:
+        conn.execute("DELETE FROM two_view_geometries")
+    names = sorted(p.name for p in (dome_scene / "images").iterdir())
+    before = pycolmap.logging.minloglevel
+    for verbose in (False, True):
+        caplog.set_level(logging.DEBUG if verbose else logging.INFO)
+        out = tmp_path / f"sparse_{verbose}"
+        out.mkdir()
+        models = strategies.incremental(
+            db, dome_scene / "images", out, MappingOptions(), names
+        )
+        assert not models
+        glog = [
+            line for line in capfd.readouterr().err.splitlines() if line[:1] in "IWE"
+        ]
+        assert bool(glog) == verbose, glog
+        assert pycolmap.logging.minloglevel == before

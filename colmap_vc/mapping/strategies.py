@@ -10,8 +10,9 @@ one place, :mod:`colmap_vc.mapping.choice`.
 
 from __future__ import annotations
 
+import contextlib
 import logging
-from collections.abc import Sequence
+from collections.abc import Iterator, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -27,6 +28,25 @@ from .options import Mapper, MappingOptions, global_options, incremental_options
 logger = logging.getLogger(__name__)
 
 MIN_MESH_INIT_POINTS = 20  # fewer triangulated points: too few for a stable BA
+
+
+@contextlib.contextmanager
+def _colmap_quiet() -> Iterator[None]:
+    """COLMAP's own log lines off while its mapper runs, unless this module logs
+    at DEBUG (``--verbose``). On people-only databases its bundle adjustment
+    writes dozens of "Linear solver failure ... dense Cholesky" warnings per
+    model (the damped step that follows succeeds), and "Failed to create any
+    sparse model" when it finds none, which the mapping step reports in its own
+    words."""
+    if logger.isEnabledFor(logging.DEBUG):
+        yield
+        return
+    level = pycolmap.logging.minloglevel
+    pycolmap.logging.minloglevel = max(level, 3)  # FATAL only
+    try:
+        yield
+    finally:
+        pycolmap.logging.minloglevel = level
 
 
 def incremental(
@@ -55,23 +75,25 @@ def incremental(
     pipeline = incremental_options(options, len(image_names))
     if only_these:
         pipeline.image_names = list(image_names)
-    return pycolmap.incremental_mapping(
-        database_path,
-        image_dir,
-        output_dir,
-        options=pipeline,
-        initial_image_pair_callback=on_init,
-        next_image_callback=on_next,
-    )
+    with _colmap_quiet():
+        return pycolmap.incremental_mapping(
+            database_path,
+            image_dir,
+            output_dir,
+            options=pipeline,
+            initial_image_pair_callback=on_init,
+            next_image_callback=on_next,
+        )
 
 
 def global_(
     database_path: Path, image_dir: Path, output_dir: Path, options: MappingOptions
 ) -> dict[int, pycolmap.Reconstruction]:
     """pycolmap's global mapper (GLOMAP) -> its models by folder number."""
-    return pycolmap.global_mapping(
-        database_path, image_dir, output_dir, options=global_options(options)
-    )
+    with _colmap_quiet():
+        return pycolmap.global_mapping(
+            database_path, image_dir, output_dir, options=global_options(options)
+        )
 
 
 def mesh_initialised(
