@@ -188,7 +188,6 @@ def relabel(
                 params=camera.params,
             )
         )
-    unposed = []
     for image_id, image in sorted(rec.images.items()):  # loop over images
         new = pycolmap.Image(
             name=image.name,
@@ -200,17 +199,12 @@ def relabel(
         )
         if image.has_pose:
             out.add_image_with_trivial_frame(new, image.cam_from_world())
-        else:
+        else:  # its frame has no pose: not registered
             out.add_image_with_trivial_frame(new)
-            unposed.append(new.image_id)
     for point in rec.points3D.values():  # loop over points: pycolmap adds one
         track = pycolmap.Track()
         for e in point.track.elements:
             track.add_element(images[e.image_id], e.point2D_idx)
         out.add_point3D(point.xyz, track, point.color)
     out.update_point_3d_errors()
-    for image_id in unposed:
-        frame_id = out.image(image_id).frame_id
-        if out.frame(frame_id).has_pose:
-            out.deregister_frame(frame_id)
     return out

@@ -125,3 +125,26 @@ def test_map_does_not_depend_on_the_image_order(databases, dome_scene, tmp_path)
     assert poses[0].keys() == poses[1].keys() and len(poses[0]) >= 5
     for name, T in poses[0].items():
         assert np.allclose(poses[1][name], T, atol=1e-6), name
+
+
+def test_relabel_keeps_an_unregistered_image_unregistered(capfd):
+    """An image the model left out comes back with the user's id and no pose,
+    without COLMAP warning that a frame was de-registered twice."""
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(
+            camera_id=1, model="PINHOLE", width=64, height=48, params=[50, 50, 32, 24]
+        )
+    )
+    posed = pycolmap.Rigid3d(pycolmap.Rotation3d(), np.array([0.0, 0.0, 1.0]))
+    rec.add_image_with_trivial_frame(
+        pycolmap.Image(name="a.jpg", camera_id=1, image_id=1), posed
+    )
+    rec.add_image_with_trivial_frame(
+        pycolmap.Image(name="b.jpg", camera_id=1, image_id=2)
+    )
+    out = canonical.relabel(rec, {1: 7, 2: 3}, {1: 5})
+    assert out.image(7).name == "a.jpg" and out.image(7).has_pose
+    assert out.image(3).name == "b.jpg" and not out.image(3).has_pose
+    assert sorted(out.reg_image_ids()) == [7]
+    assert "de-registration" not in capfd.readouterr().err
