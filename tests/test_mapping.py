@@ -493,3 +493,24 @@ def test_colmaps_own_log_lines_only_with_debug_logging(
         ]
         assert bool(glog) == verbose, glog
         assert pycolmap.logging.minloglevel == before
+
+
+def test_colmap_quiet_silences_glog_inside_its_block_only(capfd):
+    """The same switch is around colmap-vc's own Ceres solves (gba/ceres.py)."""
+    import logging
+
+    from colmap_vc.colmap_log import colmap_quiet
+
+    quiet, verbose = logging.getLogger("quiet.test"), logging.getLogger("verbose.test")
+    quiet.setLevel(logging.INFO)
+    verbose.setLevel(logging.DEBUG)
+    before = pycolmap.logging.minloglevel
+    with colmap_quiet(quiet):
+        pycolmap.logging.warning("inside the quiet block")
+    with colmap_quiet(verbose):
+        pycolmap.logging.warning("inside the verbose block")
+    pycolmap.logging.warning("after the blocks")
+    err = capfd.readouterr().err
+    assert "inside the quiet block" not in err
+    assert "inside the verbose block" in err and "after the blocks" in err
+    assert pycolmap.logging.minloglevel == before

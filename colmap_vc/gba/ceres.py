@@ -28,6 +28,7 @@ import pyceres
 import pycolmap
 import pycolmap.cost_functions as cost_functions
 
+from ..colmap_log import colmap_quiet
 from ..structs import FloatArray
 from .up import UpPriors, add_up_priors
 
@@ -130,7 +131,8 @@ def _solve(
         options.ceres.create_solver_options(config, adjuster.problem).todict()
     )
     summary = pyceres.SolverSummary()
-    pyceres.solve(solver, adjuster.problem, summary)
+    with colmap_quiet(logger):
+        pyceres.solve(solver, adjuster.problem, summary)
     return summary
 
 

@@ -10,15 +10,15 @@ one place, :mod:`colmap_vc.mapping.choice`.
 
 from __future__ import annotations
 
-import contextlib
 import logging
-from collections.abc import Iterator, Sequence
+from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
 from .. import database
+from ..colmap_log import colmap_quiet
 from ..evaluation import relative_pose, rotation_angle_deg
 from ..gba.ceres import bundle_adjust_inplace
 from ..meshalign import mesh_alignment_poses
@@ -28,25 +28,6 @@ from .options import Mapper, MappingOptions, global_options, incremental_options
 logger = logging.getLogger(__name__)
 
 MIN_MESH_INIT_POINTS = 20  # fewer triangulated points: too few for a stable BA
-
-
-@contextlib.contextmanager
-def _colmap_quiet() -> Iterator[None]:
-    """COLMAP's own log lines off while its mapper runs, unless this module logs
-    at DEBUG (``--verbose``). On people-only databases its bundle adjustment
-    writes dozens of "Linear solver failure ... dense Cholesky" warnings per
-    model (the damped step that follows succeeds), and "Failed to create any
-    sparse model" when it finds none, which the mapping step reports in its own
-    words."""
-    if logger.isEnabledFor(logging.DEBUG):
-        yield
-        return
-    level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(level, 3)  # FATAL only
-    try:
-        yield
-    finally:
-        pycolmap.logging.minloglevel = level
 
 
 def incremental(
@@ -75,7 +56,7 @@ def incremental(
     pipeline = incremental_options(options, len(image_names))
     if only_these:
         pipeline.image_names = list(image_names)
-    with _colmap_quiet():
+    with colmap_quiet(logger):
         return pycolmap.incremental_mapping(
             database_path,
             image_dir,
@@ -90,7 +71,7 @@ def global_(
     database_path: Path, image_dir: Path, output_dir: Path, options: MappingOptions
 ) -> dict[int, pycolmap.Reconstruction]:
     """pycolmap's global mapper (GLOMAP) -> its models by folder number."""
-    with _colmap_quiet():
+    with colmap_quiet(logger):
         return pycolmap.global_mapping(
             database_path, image_dir, output_dir, options=global_options(options)
         )
