@@ -184,6 +184,35 @@ def poses_by_name(rec: pycolmap.Reconstruction) -> dict[str, FloatArray]:
     return out
 
 
+def tilt_errors_deg(
+    pred: Mapping[str, FloatArray],
+    gt: Mapping[str, FloatArray],
+    up_world: FloatArray,
+) -> dict[str, float]:
+    """Each predicted camera's tilt error: the angle between the world's up as
+    it sees it and as the ground truth's camera sees it (``up_world``, in the
+    ground truth's world), after the one world rotation that best aligns the
+    predicted rotations to the ground truth's (chordal mean). It is what a
+    camera's measured up fixes and the people alone fix worst
+    (docs/real-data.md, "Static cameras"); 0 for a model off by a rotation of
+    the whole world. Cameras in both, two or more; fewer: {}."""
+    names = sorted(n for n in pred if n in gt)
+    if len(names) < 2:
+        return {}
+    Rp = np.stack([np.asarray(pred[n])[:, :3] for n in names])
+    Rg = np.stack([np.asarray(gt[n])[:, :3] for n in names])
+    # Rg_i ~ Rp_i A: A from the SVD of sum Rp_i^T Rg_i (orthogonal Procrustes).
+    U, _, Vt = np.linalg.svd(np.einsum("nji,njk->ik", Rp, Rg))
+    A = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
+    seen = np.einsum("nij,j->ni", Rp, A @ up_world)
+    truth = np.einsum("nij,j->ni", Rg, up_world)
+    cos = np.einsum("ni,ni->n", seen, truth) / (
+        np.linalg.norm(seen, axis=1) * np.linalg.norm(truth, axis=1)
+    )
+    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
+    return dict(zip(names, angle.tolist(), strict=True))
+
+
 def evaluate_poses(
     pred: Mapping[str, FloatArray],
     gt: Mapping[str, FloatArray],

@@ -72,3 +72,23 @@ def test_translation_sign_is_not_folded():
     (pair,) = ev.evaluate_poses(pred, gt).pairs
     assert pair.translation_deg == pytest.approx(180.0)
     assert math.isclose(pair.error_deg, 180.0)
+
+
+def test_tilt_errors_ignore_the_world_rotation_and_find_a_tilted_camera():
+    rng = np.random.default_rng(1)
+    gt = _random_poses(rng, 8)
+    up = np.array([0.0, 0.0, 1.0])
+    R0 = Rotation.random(random_state=5).as_matrix()  # the model's own world
+    pred = {k: np.c_[P[:, :3] @ R0.T, P[:, 3]] for k, P in gt.items()}
+    assert max(ev.tilt_errors_deg(pred, gt, up).values()) < 1e-6
+    # One camera turned 3 deg about its optical axis (a roll: its up tilts by
+    # 3 deg, unless it looks straight down): the others stay near 0.
+    roll = Rotation.from_rotvec(np.radians(3.0) * np.array([0.0, 0, 1])).as_matrix()
+    pred["im0.jpg"] = np.c_[roll @ pred["im0.jpg"][:, :3], pred["im0.jpg"][:, 3]]
+    tilt = ev.tilt_errors_deg(pred, gt, up)
+    axis = gt["im0.jpg"][:, :3] @ up  # the up in im0's frame
+    expected = np.degrees(np.arcsin(np.linalg.norm(axis[:2]) * np.sin(np.radians(3))))
+    # the fitted world rotation shares the turn among 8 cameras: 7/8 of it stays
+    assert tilt["im0.jpg"] == pytest.approx(expected * 7 / 8, abs=0.3)
+    assert max(v for k, v in tilt.items() if k != "im0.jpg") < 0.5
+    assert ev.tilt_errors_deg({"im0.jpg": pred["im0.jpg"]}, gt, up) == {}
