@@ -33,14 +33,14 @@ same):
    refinement), with as many lines within counting noise (two standard
    deviations of a count): the image does not say which is the vertical. When
    most of its lines are the best one's too (a bundle of near-parallel edges
-   that two directions explain about as well), the up stays the best one with
-   its error widened to reach the rival; when most are other lines, None. On
-   pose2sim the rivals were of the first kind, and the best was the nearer to
-   the calibration's up each time: 1.1, 1.6 and 4.7 deg apart, 35 of 37, 37 of
-   41 and 45 of 56 lines shared, the best 0.5-0.8 deg from the calibration (in
-   single t010's cam02 the rival was a treadmill's long edge, window blinds and
-   a skeleton model, 56 lines against 57). Their mean, tried first, was 1.1-2.7
-   deg off and cost two instants 3.5 and 8.4 points of AUC@15.
+   that two directions explain about as well) and it is within
+   ``max_rival_deg``, the up stays the best one with its error widened to
+   reach the rival; otherwise None. On pose2sim's full frames: single t090's
+   cam03 has a rival 1.1 deg away (35 of 37 lines shared) and multi t010's
+   cam02 one 1.6 deg away (37 of 41), both best ups within 0.5-0.8 deg of the
+   calibration's; single t010's cam02 has a treadmill's long edge, window
+   blinds and a skeleton model 4.7 deg from the verticals (56 lines against
+   57, 45 shared), and in the top 60 % of its frame the treadmill wins.
 """
 
 from __future__ import annotations
@@ -95,6 +95,17 @@ class GravityOptions:
     """Gravity lies within this of the people's up (feet to head); a camera whose
     up, turned into the world by the people's model, is farther than this from
     the other cameras' is left out (colmap_vc/mapping/up.py)."""
+    max_rival_deg: float = 2.0
+    """A rival vanishing point with about as many lines, most of them the best
+    one's too, closer than this: the up is the best one, its error widened to
+    reach the rival; farther: no up (module doc, step 4). Whichever is the
+    vertical, the chosen one is then within this of it, where the people alone
+    set a camera's tilt to 1.4-2.7 deg (median per camera, pose2sim per instant
+    without the up; bench/evidence.py's tilt column) and the cameras' ups to
+    0.5-0.7 deg. Every up the image cannot tell to 2 deg costs more than it
+    gives: on pose2sim a treadmill's bundle 4.7 deg from the verticals, kept
+    with a 4.7 deg error, cost the top 60 % of t010's frames 9.4 points of
+    AUC@15 where it won the count (81.0 -> 71.6)."""
     min_segments: int = 20
     """Fewer supporting segments: no vertical direction for that camera."""
     num_trials: int = 2000
@@ -296,15 +307,20 @@ def vertical_direction(
     if rival is not None and rival[1].sum() >= count - 2.0 * np.sqrt(count):
         direction, lines = rival
         shared = int((lines & inlier).sum())
-        if 2 * shared < lines.sum():  # mostly other lines: another bundle
+        apart = float(np.arccos(np.clip(direction @ best, -1.0, 1.0)))
+        if 2 * shared < lines.sum() or apart > np.radians(options.max_rival_deg):
             logger.debug(
-                "gravity: two vanishing points: %d and %d lines", count, lines.sum()
+                "gravity: two vanishing points %.1f deg apart: %d and %d lines, "
+                "%d shared",
+                np.degrees(apart),
+                count,
+                lines.sum(),
+                shared,
             )
             return None
-        # Mostly the same lines, which two directions explain about as well:
-        # the rival may be the vertical. The up stays the best one (the most
-        # lines), its error widened to reach the rival.
-        apart = float(np.arccos(np.clip(direction @ best, -1.0, 1.0)))
+        # Mostly the same lines, which two close directions explain about as
+        # well: the up stays the best one (the most lines), its error widened
+        # to reach the rival.
         sigma = float(np.hypot(sigma, apart))
     return (
         best,

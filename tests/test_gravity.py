@@ -571,28 +571,46 @@ def _as_segments(*parts: tuple[np.ndarray, np.ndarray]) -> Segments:
     )
 
 
-@pytest.mark.parametrize("seed", [6, 7])
-def test_two_vanishing_points_of_the_same_lines_give_their_mean(seed) -> None:
-    # Edges of 60 px lean to two directions 4 deg apart, 20 each, and 30 more
-    # between them support both (each accepts 1.9 deg about its own): two
-    # directions explain about as many lines, most of them the same ones (these
-    # seeds: RANSAC finds the two). The up is kept, its error widened to reach
-    # the other direction; it is not dropped.
+def _two_directions(
+    seed: int, apart_deg: float, length_px: float, between: int
+) -> tuple[Segments, np.ndarray]:
+    """Edges leaning to two directions ``apart_deg`` apart about the truth, 20
+    each, and ``between`` more towards the truth itself, which support both
+    (each accepts asin(2 / length) about its own) -> segments, the truth."""
     rng = np.random.default_rng(seed)
-    R = _cam_from_world(20.0, 0.0)
-    truth = R @ WORLD_UP
-    tilt = Rotation.from_rotvec(np.radians(2.0) * np.array([0.0, 0.0, 1.0]))
+    truth = _cam_from_world(20.0, 0.0) @ WORLD_UP
+    tilt = Rotation.from_rotvec(np.radians(apart_deg / 2) * np.array([0.0, 0, 1]))
     segments = _as_segments(
-        _segments_towards(tilt.apply(truth), rng, 20, 60.0),
-        _segments_towards(tilt.inv().apply(truth), rng, 20, 60.0),
-        _segments_towards(truth, rng, 30, 60.0),
+        _segments_towards(tilt.apply(truth), rng, 20, length_px),
+        _segments_towards(tilt.inv().apply(truth), rng, 20, length_px),
+        _segments_towards(truth, rng, between, length_px),
     )
+    return segments, truth
+
+
+@pytest.mark.parametrize("seed", [0, 2])
+def test_two_close_vanishing_points_of_the_same_lines_keep_the_up(seed) -> None:
+    # 1.8 deg apart, 150-px edges (these seeds: RANSAC finds the two, most
+    # lines on both). Whichever is the vertical, the best is within 1.8 deg of
+    # it: the up is kept, its error widened to reach the other.
+    segments, truth = _two_directions(seed, 1.8, 150.0, 30)
     found = vertical_direction(segments, truth, 700.0, GravityOptions())
     assert found is not None
     up, sigma, _ = found
     error = np.degrees(np.arccos(np.clip(up @ truth, -1, 1)))
-    assert np.degrees(sigma) > 2.0  # about the separation, not the fit's 0.5
+    assert np.degrees(sigma) > 1.0  # about the separation, not the fit's 0.23
     assert error < np.degrees(sigma), (error, np.degrees(sigma))
+
+
+@pytest.mark.parametrize("seed", [6, 7])
+def test_two_vanishing_points_farther_than_the_bound_give_no_up(seed) -> None:
+    # 4 deg apart, 60-px edges, most lines on both: the image cannot tell the
+    # vertical to the 2 deg an up must hold (max_rival_deg); no up.
+    segments, truth = _two_directions(seed, 4.0, 60.0, 30)
+    assert vertical_direction(segments, truth, 700.0, GravityOptions()) is None
+    wider = GravityOptions(max_rival_deg=5.0)  # the same rival, within the bound
+    found = vertical_direction(segments, truth, 700.0, wider)
+    assert found is not None and np.degrees(found[1]) > 2.0
 
 
 def test_two_vanishing_points_of_different_lines_give_no_up(rng) -> None:
