@@ -99,13 +99,14 @@ class GravityOptions:
     """A rival vanishing point with about as many lines, most of them the best
     one's too, closer than this: the up is the best one, its error widened to
     reach the rival; farther: no up (module doc, step 4). Whichever is the
-    vertical, the chosen one is then within this of it, where the people alone
-    set a camera's tilt to 1.4-2.7 deg (median per camera, pose2sim per instant
-    without the up; bench/evidence.py's tilt column) and the cameras' ups to
-    0.5-0.7 deg. Every up the image cannot tell to 2 deg costs more than it
-    gives: on pose2sim a treadmill's bundle 4.7 deg from the verticals, kept
-    with a 4.7 deg error, cost the top 60 % of t010's frames 9.4 points of
-    AUC@15 where it won the count (81.0 -> 71.6)."""
+    vertical, the chosen one is then within this of it. The people alone set a
+    camera's tilt to 1.4-2.7 deg (median per camera, pose2sim per instant
+    without the up), the ups to 0.4-0.7 deg (bench/evidence.py's tilt column):
+    an up the image cannot tell to better than that is no better than the
+    people's. Kept farther, it cost: a treadmill's bundle 4.7 deg from the
+    verticals, kept with a 4.7 deg error, won the count in the top 60 % of
+    t010's frames and cost that instant 9.4 points of AUC@15 (81.0 -> 71.6);
+    the rivals at 1.1 and 1.6 deg kept their ups within 0.8 deg."""
     min_segments: int = 20
     """Fewer supporting segments: no vertical direction for that camera."""
     num_trials: int = 2000
