@@ -207,3 +207,55 @@ def test_pose2sim_recall_and_precision(
     assert np.mean(main) >= min_recall_main
     assert np.mean([ok for _, ok in found]) >= min_recall_all
     assert sum(ok for _, ok in found) / num_detections >= 0.95  # precision
+
+
+def _standing(
+    x0: float, top: float, height: float, width: float, feet_seen: bool = True
+):
+    """BlazePose landmarks of a person standing upright in the image: head at
+    ``top``, feet ``height`` px below, ``width`` wide from ``x0``."""
+    rng = np.random.default_rng(0)
+    xy = np.c_[
+        x0 + rng.uniform(0, width, body.NUM_LANDMARKS),
+        top + rng.uniform(0, 0.75 * height, body.NUM_LANDMARKS),
+    ]
+    feet = np.asarray(bp.FEET)
+    xy[feet, 1] = top + height - rng.uniform(0, 0.04 * height, len(feet))
+    xy[feet[-1], 1] = top + height
+    xy[[0, 1], 0] = x0, x0 + width  # the box's sides and top
+    xy[0, 1] = top
+    visibility = np.ones(body.NUM_LANDMARKS)
+    if not feet_seen:
+        visibility[feet] = 0.1
+    return body.BodyLandmarks(
+        xy_img=xy, points_3d=np.zeros((body.NUM_LANDMARKS, 3)), visibility=visibility
+    )
+
+
+def test_a_copy_on_a_persons_legs_is_part_of_them_a_child_in_front_is_not():
+    # pose2sim_single t070 cam01 saved again as JPEG: the man's landmark box
+    # (381-778, 525-1277) and a skeleton over his legs (376-703, 788-1267), 52 %
+    # of his area and inside his box, its feet 330 px above his.
+    adult = _standing(381.0, 525.0, 752.0, 397.0)
+    copy = _standing(381.0, 788.0, 479.0, 322.0)
+    copy.xy_img[np.asarray(bp.FEET), 1] -= 330.0
+    copy.xy_img[2, 1] = 1267.0  # its box still reaches his feet
+    # A child a step in front of him: nearly as wide, inside his box, its feet
+    # lower in the image (nearer the camera, on the same floor).
+    child = _standing(381.0, 760.0, 560.0, 380.0)
+
+    def area(lm: body.BodyLandmarks) -> float:
+        box = bp.landmark_box(lm, 0.5)
+        return float(np.prod(box[2:] - box[:2]))
+
+    assert area(copy) > 0.5 * area(adult)  # too large to be a crop of him
+    assert area(child) > 0.5 * area(adult)
+    assert bp._part_of(copy, adult)
+    assert not bp._part_of(child, adult)
+    # Without feet seen, nothing says which: the larger one is kept.
+    unseen = _standing(381.0, 788.0, 479.0, 322.0, feet_seen=False)
+    unseen.xy_img[2, 1] = 1267.0  # the same box as the copy's
+    assert area(unseen) > 0.5 * area(adult)
+    assert not bp._part_of(unseen, adult)
+    # A crop of at most half the area is a part whatever its feet.
+    assert bp._part_of(_standing(420.0, 900.0, 360.0, 300.0), adult)
