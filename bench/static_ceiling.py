@@ -33,6 +33,7 @@ from realdata import SHARED, load_calibration
 from scipy.spatial.transform import Rotation
 
 from colmap_vc import database
+from colmap_vc.estimators.blazepose import FEET_NAMES
 from colmap_vc.estimators.body import anny_keypoint_names
 from colmap_vc.evaluation import evaluate_poses
 from colmap_vc.gba.ceres import bundle_adjust_inplace
@@ -55,14 +56,7 @@ GROUPS = {
     "shoulders": ("left_shoulder", "right_shoulder"),
     "elbows and wrists": ("left_elbow", "right_elbow", "left_wrist", "right_wrist"),
     "knees": ("left_knee", "right_knee"),
-    "ankles and feet": (
-        "left_ankle",
-        "right_ankle",
-        "left_heel",
-        "right_heel",
-        "left_foot_index",
-        "right_foot_index",
-    ),
+    "ankles and feet": FEET_NAMES,
 }
 
 

@@ -417,17 +417,15 @@ def shared_landmarks(
     return float((dist < tol * max(size, 1.0)).mean())
 
 
-FEET = tuple(
-    body.BLAZEPOSE_NAMES.index(n)
-    for n in (
-        "left_ankle",
-        "right_ankle",
-        "left_heel",
-        "right_heel",
-        "left_foot_index",
-        "right_foot_index",
-    )
+FEET_NAMES = (
+    "left_ankle",
+    "right_ankle",
+    "left_heel",
+    "right_heel",
+    "left_foot_index",
+    "right_foot_index",
 )
+FEET = tuple(body.BLAZEPOSE_NAMES.index(n) for n in FEET_NAMES)
 
 
 def _feet_row(lm: body.BodyLandmarks, min_visibility: float = 0.5) -> float | None:
