@@ -98,9 +98,23 @@ class GravityOptions:
     """A segment supports a vanishing point when both its endpoints lie within
     this of the line from its midpoint to the point (module doc)."""
     max_hint_deg: float = 25.0
-    """Gravity lies within this of the people's up (feet to head); a camera whose
-    up, turned into the world by the people's model, is farther than this from
-    the other cameras' is left out (colmap_vc/mapping/up.py)."""
+    """Gravity lies within this of the people's up (feet to head); a camera the
+    model turns farther than this from both its own lines and its people's up
+    leaves the model (colmap_vc/mapping/up.py)."""
+    max_disagreement_deg: float = 15.0
+    """A camera whose up, turned into the world by the people's model, is
+    farther than this from the mean of the other cameras' is left out of the
+    up (colmap_vc/mapping/up.py; two that disagree: both). What the people
+    leave: the tilt between two cameras of the model before the ups, on
+    pose2sim_single per instant (one person, four cameras, the worst case
+    measured), is 4.6 deg median and 9.8 deg at most over its 30 pairs; a
+    Rayleigh of scale 3.9 deg (median 1.177 times the scale) fits, and its
+    1-in-1000 tail is 3.72 times that, 14.5 deg (pose2sim_multi: 2.2 deg
+    median). The ups' own errors (0.2-1.7 deg) add little. Until the bound
+    was this, it was ``max_hint_deg`` on the angle to the mean of all ups,
+    the camera's own included: with two cameras, half their angle, so two
+    ups 50 deg apart passed; the 16-view dome of bench/gba_speed.py used
+    two 25.4 deg apart, one of them 23.8 deg off."""
     max_rival_deg: float = 2.0
     """A rival vanishing point with about as many lines, most of them the best
     one's too, closer than this: the up is the best one, its error widened to

@@ -360,6 +360,37 @@ def test_an_up_that_disagrees_with_the_other_cameras_is_left_out(dome_scene) -> 
     assert sorted(kept) == names and left_out == {}
 
 
+def test_two_ups_are_judged_by_their_angle_to_each_other(dome_scene) -> None:
+    """With two cameras, each up is compared with the other's, not with their
+    mean (half their angle): two ups 20 deg apart, one of them a chance
+    alignment, are both left out under the default bound; 10 deg apart (the
+    people's tilt error between two cameras reaches that on pose2sim) both
+    stay. Three cameras: the one 20 deg off leaves, the others stay."""
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    registered = {im.name: i for i, im in gt.images.items()}
+    names = sorted(registered)
+    bound = GravityOptions().max_disagreement_deg
+    true_up = {
+        n: gt.image(registered[n]).cam_from_world().rotation.matrix() @ WORLD_UP
+        for n in names
+    }
+
+    def tilted(name: str, deg: float) -> Gravity:
+        turn = Rotation.from_rotvec(np.radians(deg) * np.array([1.0, 0, 0]))
+        return _gravity(turn.apply(true_up[name]), true_up[name])
+
+    far = {names[0]: _gravity(true_up[names[0]]), names[1]: tilted(names[1], 20)}
+    kept, left_out = agreeing_ups(gt, registered, far, bound)
+    assert kept == {} and sorted(left_out) == names[:2]
+    assert all(abs(a - 20.0) < 0.1 for a in left_out.values())
+    near = {names[0]: _gravity(true_up[names[0]]), names[1]: tilted(names[1], 10)}
+    kept, left_out = agreeing_ups(gt, registered, near, bound)
+    assert sorted(kept) == names[:2] and left_out == {}
+    three = {**far, names[2]: _gravity(true_up[names[2]])}
+    kept, left_out = agreeing_ups(gt, registered, three, bound)
+    assert sorted(kept) == [names[0], names[2]] and list(left_out) == [names[1]]
+
+
 def test_a_camera_its_own_lines_and_people_contradict_leaves_the_model(
     dome_scene,
 ) -> None:

@@ -131,7 +131,9 @@ def refine_with_gravity_inplace(
     cameras = {n: inputs.views.cameras[camera_of[n]] for n in names}
     measured = measure_gravity(image_dir, groups, cameras, persons, options)
     every = measured
-    measured, disagree = agreeing_ups(rec, registered, measured, options.max_hint_deg)
+    measured, disagree = agreeing_ups(
+        rec, registered, measured, options.max_disagreement_deg
+    )
     contradicted = contradicted_cameras(
         rec, registered, every, measured, disagree, options.max_hint_deg
     )
@@ -191,14 +193,15 @@ def agreeing_ups(
     max_deg: float,
 ) -> tuple[dict[str, Gravity], dict[str, float]]:
     """The measured cameras whose up, turned into the world by the people's model,
-    lies within ``max_deg`` of the others' mean (the farthest left out first, one
-    at a time), and those left out with their angle. The people place cameras to a
-    few degrees, and a vanishing point found in the wrong lines, or near a person
-    who is not upright, is far off; two that disagree are both left out."""
+    lies within ``max_deg`` of the mean of the others' (the farthest left out
+    first, one at a time), and those left out with their angle. The people
+    place cameras to a few degrees, and a vanishing point found in the wrong
+    lines, or near a person who is not upright, is far off; two that disagree
+    are both left out."""
     kept = dict(measured)
     left_out: dict[str, float] = {}
     while len(kept) >= 2:
-        angle = _residuals_deg(rec, registered, kept)
+        angle = _others_deg(rec, registered, kept)
         worst = max(angle, key=lambda k: (angle[k], k))
         if angle[worst] <= max_deg:
             break
@@ -211,6 +214,27 @@ def agreeing_ups(
     for k, a in left_out.items():
         logger.info("gravity: %s left out: its up is %.1f deg from the others'", k, a)
     return {k: measured[k] for k in sorted(kept)}, left_out
+
+
+def _others_deg(
+    rec: pycolmap.Reconstruction,
+    registered: dict[str, int],
+    measured: dict[str, Gravity],
+) -> dict[str, float]:
+    """Per measured camera (two or more): the angle between its up and the mean
+    of the other cameras' ups, both turned into the world by the model."""
+    keys = sorted(measured)
+    world = np.array(
+        [
+            rec.image(registered[k]).cam_from_world().rotation.matrix().T
+            @ measured[k].up_cam
+            for k in keys
+        ]
+    )
+    others = world.sum(axis=0) - world  # (n, 3): the sum of the others' ups
+    others /= np.linalg.norm(others, axis=1, keepdims=True)
+    cos = np.clip(np.einsum("ij,ij->i", world, others), -1.0, 1.0)
+    return dict(zip(keys, np.degrees(np.arccos(cos)).tolist(), strict=True))
 
 
 def absorbed_noise_px(
