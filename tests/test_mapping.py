@@ -11,6 +11,7 @@ import cv2
 import numpy as np
 import pycolmap
 import pytest
+from scipy.spatial.transform import Rotation
 
 from colmap_vc import augment, database, mapping
 from colmap_vc.baselines import colmap_incremental
@@ -21,6 +22,7 @@ from colmap_vc.evaluation import (
     poses_by_name,
 )
 from colmap_vc.meshalign import mesh_alignment_poses
+from colmap_vc.outputs import marker_name
 from colmap_vc.priors import read_priors
 
 
@@ -388,15 +390,20 @@ def test_the_classic_baseline_is_colmap_itself(dome_scene, tmp_path):
     assert (0 if rec is None else rec.num_reg_images()) == own
 
 
-def _with_pillars(scene, out):
+def _with_pillars(scene, out, lean_deg: float = 0.0):
     """A copy of the scene's images with vertical pillars (world Z up) on a ring
-    around the people, drawn through each image's true camera."""
+    around the people, drawn through each image's true camera; with
+    ``lean_deg``, the pillars of the k-th image lean by that much, each image's
+    towards another side (60 deg apart in azimuth)."""
     gt = pycolmap.Reconstruction(scene / "gt" / "sparse")
     out.mkdir()
     angles = np.linspace(0, 2 * np.pi, 48, endpoint=False)
     feet = np.c_[7 * np.cos(angles), 7 * np.sin(angles), np.zeros(len(angles))]
-    heads = feet + np.array([0.0, 0.0, 3.0])
-    for image in gt.images.values():
+    for k, image in enumerate(sorted(gt.images.values(), key=lambda im: im.name)):
+        azimuth, lean = np.radians(60.0 * k), np.radians(lean_deg)
+        axis = np.array([np.cos(azimuth), np.sin(azimuth), 0.0])
+        up = Rotation.from_rotvec(lean * axis).apply([0.0, 0.0, 3.0])
+        heads = feet + up
         picture = cv2.imread(str(scene / "images" / image.name))
         T = image.cam_from_world().matrix()
         camera = gt.camera(image.camera_id)
@@ -433,6 +440,27 @@ def test_gravity_from_vertical_lines_is_measured_and_kept(
         truth = gt.find_image_with_name(name).cam_from_world().rotation.matrix()[:, 2]
         assert float(np.dot(camera["up_cam"], truth)) > 0.999
         assert camera["residual_deg"] < 1.0
+
+
+def test_when_no_two_cameras_agree_on_the_up_no_model_is_left(
+    dome_scene, augmented, tmp_path
+):
+    """Each image's pillars lean 20 deg, each towards another side: through the
+    people's model no two cameras' ups agree (20-40 deg apart, more than the 15
+    the people leave), so the model contradicts the images and nothing says
+    which camera is right. No camera is kept, the error says why, and the
+    output folder holds no model (a failed run leaves only its marker)."""
+    _with_pillars(dome_scene, tmp_path / "images", lean_deg=20.0)
+    out = tmp_path / "sparse"
+    with pytest.raises(RuntimeError, match="no model left") as err:
+        mapping.run(
+            augmented,
+            tmp_path / "images",
+            out,
+            mapping.MappingOptions(num_threads=2, gravity=True),
+        )
+    assert "no two of the 6 cameras with vertical lines agree" in str(err.value)
+    assert sorted(p.name for p in out.iterdir()) == [marker_name("map")]
 
 
 def test_two_images_placed_by_people_alone_come_with_a_warning(

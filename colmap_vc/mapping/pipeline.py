@@ -15,10 +15,12 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+import shutil
 import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
+from typing import NoReturn
 
 import pycolmap
 
@@ -221,6 +223,8 @@ def _map_copy(
     elif options.gravity:
         logger.info("gravity: needs priors (the people's up): model unchanged")
     timings["gravity"] = time.perf_counter() - lap
+    if best is not None and best.num_reg_images() < 2:
+        _no_model_left(output_dir, best, left_out)
     lap = time.perf_counter()
     scale = _metric_scale(best, inputs, options)
     if best is not None and best.num_reg_images() == 2 and inputs.static is None:
@@ -272,6 +276,24 @@ def _map_copy(
         re_posed=re_posed,
     )
     return best, summary
+
+
+def _no_model_left(
+    output_dir: Path, rec: pycolmap.Reconstruction, left_out: dict[str, str]
+) -> NoReturn:
+    """The checks left fewer than two images of the model: no model. The
+    mappers' models leave ``output_dir`` (a failed run leaves only its marker;
+    a model the checks contradicted is not one to pick up by mistake)."""
+    for folder in sorted(output_dir.iterdir()):  # loop over the written models
+        if folder.is_dir() and (folder / "images.bin").is_file():
+            shutil.rmtree(folder)
+    names = sorted(left_out)
+    first = f" {names[0]}: {left_out[names[0]]}" if names else ""
+    raise RuntimeError(
+        f"no model left: the checks left out {len(names)} image(s) of the model "
+        f"({', '.join(names)}) and {rec.num_reg_images()} remain(s); the "
+        f"warnings above say why each left.{first}"
+    )
 
 
 def _check_against_meshes(

@@ -135,7 +135,13 @@ def refine_with_gravity_inplace(
         rec, registered, measured, options.max_disagreement_deg
     )
     contradicted = contradicted_cameras(
-        rec, registered, every, measured, disagree, options.max_hint_deg
+        rec,
+        registered,
+        every,
+        measured,
+        disagree,
+        options.max_hint_deg,
+        max_disagreement_deg=options.max_disagreement_deg,
     )
     for name, reason in contradicted.items():
         logger.warning("gravity: %s %s", name, reason)
@@ -316,6 +322,8 @@ def contradicted_cameras(
     agreeing: dict[str, Gravity],
     disagree: dict[str, float],
     max_deg: float,
+    *,
+    max_disagreement_deg: float,
 ) -> dict[str, str]:
     """The cameras whose own image contradicts their pose: name -> reason.
 
@@ -328,9 +336,16 @@ def contradicted_cameras(
     pose: the camera is what is wrong (pose2sim_multi t090: a detection that
     merged the two people put cam03 55 deg off, its lines 38 deg away). A wrong
     camera is worse than none, so it leaves the model.
+
+    Three or more measured cameras no two of which agree within
+    ``max_disagreement_deg`` leave the model together: that many wrong
+    vanishing points, each off in its own way, are less likely than a wrong
+    model, and nothing says which camera is right (pose2sim_single t030 in
+    grey: two people exchanged between two images, every camera's up 0.2-0.8
+    deg from the calibration's, the model's 18-68 deg apart in every pair).
     """
     if len(agreeing) < 2:
-        return {}  # no consensus on the world's up
+        return _nothing_agrees(rec, registered, measured, max_disagreement_deg)
     world = [
         rec.image(registered[k]).cam_from_world().rotation.matrix().T
         @ agreeing[k].up_cam
@@ -355,6 +370,41 @@ def contradicted_cameras(
                 f"{to_people:.0f} deg from its people's up, more than {max_deg:g})"
             )
     return out
+
+
+def _nothing_agrees(
+    rec: pycolmap.Reconstruction,
+    registered: dict[str, int],
+    measured: dict[str, Gravity],
+    max_deg: float,
+) -> dict[str, str]:
+    """Every measured camera, when there are three or more and no two of their
+    ups, turned into the world by the model, lie within ``max_deg`` of each
+    other: name -> reason; else {}."""
+    keys = sorted(measured)
+    if len(keys) < 3:
+        return {}
+    world = np.array(
+        [
+            rec.image(registered[k]).cam_from_world().rotation.matrix().T
+            @ measured[k].up_cam
+            for k in keys
+        ]
+    )
+    angle = np.degrees(np.arccos(np.clip(world @ world.T, -1.0, 1.0)))
+    np.fill_diagonal(angle, np.inf)
+    nearest = angle.min(axis=1)
+    if nearest.min() <= max_deg:
+        return {}
+    return {
+        k: (
+            f"left out: no two of the {len(keys)} cameras with vertical lines "
+            f"agree on the up through the model (this one's is {a:.0f} deg from "
+            f"the nearest other's, more than {max_deg:g}): the model contradicts "
+            "the images, and nothing says which camera is right"
+        )
+        for k, a in zip(keys, nearest.tolist(), strict=True)
+    }
 
 
 def _residuals_deg(
