@@ -229,14 +229,7 @@ def _others_deg(
 ) -> dict[str, float]:
     """Per measured camera (two or more): the angle between its up and the mean
     of the other cameras' ups, both turned into the world by the model."""
-    keys = sorted(measured)
-    world = np.array(
-        [
-            rec.image(registered[k]).cam_from_world().rotation.matrix().T
-            @ measured[k].up_cam
-            for k in keys
-        ]
-    )
+    keys, world = _world_ups(rec, registered, measured)
     others = world.sum(axis=0) - world  # (n, 3): the sum of the others' ups
     others /= np.linalg.norm(others, axis=1, keepdims=True)
     cos = np.clip(np.einsum("ij,ij->i", world, others), -1.0, 1.0)
@@ -346,12 +339,7 @@ def contradicted_cameras(
     """
     if len(agreeing) < 2:
         return _nothing_agrees(rec, registered, measured, max_disagreement_deg)
-    world = [
-        rec.image(registered[k]).cam_from_world().rotation.matrix().T
-        @ agreeing[k].up_cam
-        for k in sorted(agreeing)
-    ]
-    up = np.mean(world, axis=0)
+    up = _world_ups(rec, registered, agreeing)[1].mean(axis=0)
     up /= np.linalg.norm(up)
     out: dict[str, str] = {}
     for name in sorted(disagree):  # loop over the disagreeing cameras
@@ -381,16 +369,9 @@ def _nothing_agrees(
     """Every measured camera, when there are three or more and no two of their
     ups, turned into the world by the model, lie within ``max_deg`` of each
     other: name -> reason; else {}."""
-    keys = sorted(measured)
-    if len(keys) < 3:
+    if len(measured) < 3:
         return {}
-    world = np.array(
-        [
-            rec.image(registered[k]).cam_from_world().rotation.matrix().T
-            @ measured[k].up_cam
-            for k in keys
-        ]
-    )
+    keys, world = _world_ups(rec, registered, measured)
     angle = np.degrees(np.arccos(np.clip(world @ world.T, -1.0, 1.0)))
     np.fill_diagonal(angle, np.inf)
     nearest = angle.min(axis=1)
@@ -407,6 +388,24 @@ def _nothing_agrees(
     }
 
 
+def _world_ups(
+    rec: pycolmap.Reconstruction,
+    registered: dict[str, int],
+    measured: dict[str, Gravity],
+) -> tuple[list[str], np.ndarray]:
+    """The measured cameras' names, sorted, and their ups (n, 3) turned into the
+    world by the model."""
+    keys = sorted(measured)
+    world = np.array(
+        [
+            rec.image(registered[k]).cam_from_world().rotation.matrix().T
+            @ measured[k].up_cam
+            for k in keys
+        ]
+    ).reshape(-1, 3)
+    return keys, world
+
+
 def _residuals_deg(
     rec: pycolmap.Reconstruction,
     registered: dict[str, int],
@@ -416,17 +415,11 @@ def _residuals_deg(
     common up (the mean of the measurements turned into the world)."""
     if len(measured) < 2:
         return {}
-    world = {
-        k: rec.image(registered[k]).cam_from_world().rotation.matrix().T
-        @ measured[k].up_cam
-        for k in sorted(measured)
-    }
-    mean = np.mean(list(world.values()), axis=0)
+    keys, world = _world_ups(rec, registered, measured)
+    mean = world.mean(axis=0)
     mean /= np.linalg.norm(mean)
-    return {
-        k: float(np.degrees(np.arccos(np.clip(v @ mean, -1.0, 1.0))))
-        for k, v in world.items()
-    }
+    angle = np.degrees(np.arccos(np.clip(world @ mean, -1.0, 1.0)))
+    return dict(zip(keys, angle.tolist(), strict=True))
 
 
 def write_gravity(model_dir: Path, result: GravityResult) -> Path:
