@@ -249,10 +249,10 @@ def _setup_logging(verbose: bool) -> None:
     root.handlers[:] = [handler]
     root.setLevel(logging.DEBUG if verbose else logging.INFO)
     if not verbose:
-        import pycolmap
+        from .colmap_log import set_min_log_level
 
-        # COLMAP's glog: warnings and errors only unless --verbose.
-        pycolmap.logging.minloglevel = 1
+        # COLMAP's and Ceres's glog: warnings and errors only unless --verbose.
+        set_min_log_level(1)
 
 
 def _load_model(path: Path):  # -> pycolmap.Reconstruction

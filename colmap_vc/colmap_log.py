@@ -15,19 +15,34 @@ import contextlib
 import logging
 from collections.abc import Iterator
 
+import pyceres
 import pycolmap
+
+GLOGS = (pycolmap.logging, pyceres.logging)
+"""The two glog instances: pycolmap's (COLMAP, its mappers and its Ceres) and
+pyceres's own (linked into its module: the solves colmap-vc runs through
+``pyceres.solve``). Setting one leaves the other as it was."""
+
+
+def set_min_log_level(level: int) -> None:
+    """glog's lowest level written (0 info, 1 warning, 2 error, 3 fatal), in
+    both instances."""
+    for glog in GLOGS:
+        glog.minloglevel = level
 
 
 @contextlib.contextmanager
 def colmap_quiet(logger: logging.Logger) -> Iterator[None]:
-    """COLMAP's log lines below FATAL off inside the block, unless ``logger``
-    logs at DEBUG; glog's level is restored after it."""
+    """COLMAP's and Ceres's log lines below FATAL off inside the block, unless
+    ``logger`` logs at DEBUG; glog's levels are restored after it."""
     if logger.isEnabledFor(logging.DEBUG):
         yield
         return
-    level = pycolmap.logging.minloglevel
-    pycolmap.logging.minloglevel = max(level, 3)  # FATAL only
+    levels = [glog.minloglevel for glog in GLOGS]
+    for glog, level in zip(GLOGS, levels, strict=True):
+        glog.minloglevel = max(level, 3)  # FATAL only
     try:
         yield
     finally:
-        pycolmap.logging.minloglevel = level
+        for glog, level in zip(GLOGS, levels, strict=True):
+            glog.minloglevel = level

@@ -9,6 +9,7 @@ import sqlite3
 
 import cv2
 import numpy as np
+import pyceres
 import pycolmap
 import pytest
 from scipy.spatial.transform import Rotation
@@ -532,13 +533,20 @@ def test_colmap_quiet_silences_glog_inside_its_block_only(capfd):
     quiet, verbose = logging.getLogger("quiet.test"), logging.getLogger("verbose.test")
     quiet.setLevel(logging.INFO)
     verbose.setLevel(logging.DEBUG)
-    before = pycolmap.logging.minloglevel
+    before = pycolmap.logging.minloglevel, pyceres.logging.minloglevel
+    # pyceres links its own glog (its solves' "Linear solver failure" lines):
+    # both are quiet inside the block.
     with colmap_quiet(quiet):
         pycolmap.logging.warning("inside the quiet block")
+        pyceres.logging.warning("pyceres inside the quiet block")
     with colmap_quiet(verbose):
         pycolmap.logging.warning("inside the verbose block")
+        pyceres.logging.warning("pyceres inside the verbose block")
     pycolmap.logging.warning("after the blocks")
+    pyceres.logging.warning("pyceres after the blocks")
     err = capfd.readouterr().err
     assert "inside the quiet block" not in err
     assert "inside the verbose block" in err and "after the blocks" in err
-    assert pycolmap.logging.minloglevel == before
+    assert "pyceres inside the verbose block" in err
+    assert "pyceres after the blocks" in err
+    assert (pycolmap.logging.minloglevel, pyceres.logging.minloglevel) == before
