@@ -131,17 +131,9 @@ def refine_with_gravity_inplace(
     cameras = {n: inputs.views.cameras[camera_of[n]] for n in names}
     measured = measure_gravity(image_dir, groups, cameras, persons, options)
     every = measured
-    measured, disagree = agreeing_ups(
-        rec, registered, measured, options.max_disagreement_deg
-    )
+    measured, disagree = agreeing_ups(rec, registered, measured, options.max_hint_deg)
     contradicted = contradicted_cameras(
-        rec,
-        registered,
-        every,
-        measured,
-        disagree,
-        options.max_hint_deg,
-        max_disagreement_deg=options.max_disagreement_deg,
+        rec, registered, every, measured, disagree, options.max_hint_deg
     )
     for name, reason in contradicted.items():
         logger.warning("gravity: %s %s", name, reason)
@@ -199,15 +191,18 @@ def agreeing_ups(
     max_deg: float,
 ) -> tuple[dict[str, Gravity], dict[str, float]]:
     """The measured cameras whose up, turned into the world by the people's model,
-    lies within ``max_deg`` of the mean of the others' (the farthest left out
-    first, one at a time), and those left out with their angle. The people
-    place cameras to a few degrees, and a vanishing point found in the wrong
-    lines, or near a person who is not upright, is far off; two that disagree
-    are both left out."""
+    lies within ``max_deg`` of the mean of all the measured ups, its own included
+    (the farthest left out first, one at a time), and those left out with their
+    angle. The people place cameras to a few degrees, and a vanishing point found
+    in the wrong lines, or near a person who is not upright, is far off; two that
+    disagree are both left out. With two cameras the angle is half of theirs:
+    two ups up to 2 ``max_deg`` apart are both used, since a model of two
+    cameras can leave their tilts 15-31 deg apart where both ups are right
+    (bench/subsets.py; ``GravityOptions.max_hint_deg``)."""
     kept = dict(measured)
     left_out: dict[str, float] = {}
     while len(kept) >= 2:
-        angle = _others_deg(rec, registered, kept)
+        angle = _residuals_deg(rec, registered, kept)
         worst = max(angle, key=lambda k: (angle[k], k))
         if angle[worst] <= max_deg:
             break
@@ -218,22 +213,10 @@ def agreeing_ups(
         left_out[worst] = angle[worst]
         del kept[worst]
     for k, a in left_out.items():
-        logger.info("gravity: %s left out: its up is %.1f deg from the others'", k, a)
+        logger.info(
+            "gravity: %s left out: its up is %.1f deg from the measured ups' mean", k, a
+        )
     return {k: measured[k] for k in sorted(kept)}, left_out
-
-
-def _others_deg(
-    rec: pycolmap.Reconstruction,
-    registered: dict[str, int],
-    measured: dict[str, Gravity],
-) -> dict[str, float]:
-    """Per measured camera (two or more): the angle between its up and the mean
-    of the other cameras' ups, both turned into the world by the model."""
-    keys, world = _world_ups(rec, registered, measured)
-    others = world.sum(axis=0) - world  # (n, 3): the sum of the others' ups
-    others /= np.linalg.norm(others, axis=1, keepdims=True)
-    cos = np.clip(np.einsum("ij,ij->i", world, others), -1.0, 1.0)
-    return dict(zip(keys, np.degrees(np.arccos(cos)).tolist(), strict=True))
 
 
 def absorbed_noise_px(
@@ -315,8 +298,6 @@ def contradicted_cameras(
     agreeing: dict[str, Gravity],
     disagree: dict[str, float],
     max_deg: float,
-    *,
-    max_disagreement_deg: float,
 ) -> dict[str, str]:
     """The cameras whose own image contradicts their pose: name -> reason.
 
@@ -329,16 +310,9 @@ def contradicted_cameras(
     pose: the camera is what is wrong (pose2sim_multi t090: a detection that
     merged the two people put cam03 55 deg off, its lines 38 deg away). A wrong
     camera is worse than none, so it leaves the model.
-
-    Three or more measured cameras no two of which agree within
-    ``max_disagreement_deg`` leave the model together: that many wrong
-    vanishing points, each off in its own way, are less likely than a wrong
-    model, and nothing says which camera is right (pose2sim_single t030 in
-    grey: two people exchanged between two images, every camera's up 0.2-0.8
-    deg from the calibration's, the model's 18-68 deg apart in every pair).
     """
     if len(agreeing) < 2:
-        return _nothing_agrees(rec, registered, measured, max_disagreement_deg)
+        return {}  # no consensus on the world's up
     up = _world_ups(rec, registered, agreeing)[1].mean(axis=0)
     up /= np.linalg.norm(up)
     out: dict[str, str] = {}
@@ -358,34 +332,6 @@ def contradicted_cameras(
                 f"{to_people:.0f} deg from its people's up, more than {max_deg:g})"
             )
     return out
-
-
-def _nothing_agrees(
-    rec: pycolmap.Reconstruction,
-    registered: dict[str, int],
-    measured: dict[str, Gravity],
-    max_deg: float,
-) -> dict[str, str]:
-    """Every measured camera, when there are three or more and no two of their
-    ups, turned into the world by the model, lie within ``max_deg`` of each
-    other: name -> reason; else {}."""
-    if len(measured) < 3:
-        return {}
-    keys, world = _world_ups(rec, registered, measured)
-    angle = np.degrees(np.arccos(np.clip(world @ world.T, -1.0, 1.0)))
-    np.fill_diagonal(angle, np.inf)
-    nearest = angle.min(axis=1)
-    if nearest.min() <= max_deg:
-        return {}
-    return {
-        k: (
-            f"left out: no two of the {len(keys)} cameras with vertical lines "
-            f"agree on the up through the model (this one's is {a:.0f} deg from "
-            f"the nearest other's, more than {max_deg:g}): the model contradicts "
-            "the images, and nothing says which camera is right"
-        )
-        for k, a in zip(keys, nearest.tolist(), strict=True)
-    }
 
 
 def _world_ups(
