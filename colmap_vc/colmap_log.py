@@ -34,15 +34,20 @@ def set_min_log_level(level: int) -> None:
 @contextlib.contextmanager
 def colmap_quiet(logger: logging.Logger) -> Iterator[None]:
     """COLMAP's and Ceres's log lines below FATAL off inside the block, unless
-    ``logger`` logs at DEBUG; glog's levels are restored after it."""
-    if logger.isEnabledFor(logging.DEBUG):
-        yield
-        return
+    ``logger`` logs at DEBUG; glog's levels are restored after it. Inside the
+    block pyceres's glog writes to stderr only: left as it is, its first lines
+    after COLMAP's also open log files in the working folder
+    (``.<host>.<user>.log.WARNING.<time>``), which two earlier runs left in
+    this repository."""
     levels = [glog.minloglevel for glog in GLOGS]
-    for glog, level in zip(GLOGS, levels, strict=True):
-        glog.minloglevel = max(level, 3)  # FATAL only
+    to_stderr = pyceres.logging.logtostderr
+    pyceres.logging.logtostderr = True
+    if not logger.isEnabledFor(logging.DEBUG):
+        for glog, level in zip(GLOGS, levels, strict=True):
+            glog.minloglevel = max(level, 3)  # FATAL only
     try:
         yield
     finally:
         for glog, level in zip(GLOGS, levels, strict=True):
             glog.minloglevel = level
+        pyceres.logging.logtostderr = to_stderr
