@@ -109,7 +109,8 @@ class GravityOptions:
     pose2sim's four cameras per instant) was tried at c58f014 and reverted: a
     model of two cameras leaves their tilts 15-31 deg apart where both ups are
     right, and the ups are what fixes it (bench/subsets.py: static cam02-cam03
-    2.2 -> 37.3 deg, docs/real-data.md, "The cameras' up")."""
+    2.2 -> 37.3 deg; docs/real-data.md, "Why people alone stop at 2-3
+    degrees, and the cameras' up")."""
     max_rival_deg: float = 2.0
     """A rival vanishing point with about as many lines, most of them the best
     one's too, closer than this: the up is the best one, its error widened to
