@@ -250,7 +250,7 @@ def absorbed_noise_px(
     rotations = {
         k: rec.image(registered[k]).cam_from_world().rotation.matrix() for k in keys
     }
-    world = np.array([rotations[k].T @ measured[k].up_cam for k in keys])
+    world = _world_ups(rec, registered, measured)[1]
     up = world.mean(axis=0)
     up /= np.linalg.norm(up)
     d2 = np.arccos(np.clip(world @ up, -1.0, 1.0)) ** 2
