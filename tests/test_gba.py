@@ -10,7 +10,7 @@ import pycolmap
 import pytest
 
 from colmap_vc.evaluation import evaluate_reconstruction
-from colmap_vc.gba.ceres import PeopleNoise, bundle_adjust_inplace
+from colmap_vc.gba.ceres import PeopleNoise, bundle_adjust_inplace, weighted_points
 from colmap_vc.gba.correlated import correlated_noise
 from colmap_vc.gba.noise import cluster_noise, reprojection_residuals
 from colmap_vc.keypoint_tracks import KeypointTracks, triangulate_tracks
@@ -78,6 +78,24 @@ def test_weighted_observations_follow_their_noise(dome_scene, rng):
     r_weighted = np.median(_other_residuals(weighted, tracks, bad))
     assert r_weighted < 0.6 and r_weighted < 0.5 * r_plain
     assert evaluate_reconstruction(weighted, gt).median_error_deg < 0.1
+
+
+def test_a_point_is_the_peoples_only_when_every_view_has_a_noise(dome_scene, rng):
+    """A point with one observation without a noise (NaN: a classic keypoint in
+    one view) stays under COLMAP's loss; one in an image without noises too; the
+    others are weighted, in id order."""
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    X = rng.normal(0, 0.4, (40, 3)) * [1, 2, 1] + [0, -0.9, 0]
+    rec, _ = _observed(gt, X, {}, rng)
+    ids = sorted(rec.reg_image_ids())
+    sigma = {i: np.full(rec.image(i).num_points2D(), 0.3) for i in ids[1:]}
+    sigma[ids[1]][4] = np.nan  # point 5's view in the second image
+    people = PeopleNoise(sigma_px=sigma, robust_px=sigma)
+    assert weighted_points(rec, people) == []  # the first image has no noises
+    sigma[ids[0]] = np.full(rec.image(ids[0]).num_points2D(), 0.3)
+    assert weighted_points(rec, people) == [k for k in range(1, 41) if k != 5]
+    bundle_adjust_inplace(rec, 1.0, people)
+    assert evaluate_reconstruction(rec, gt).median_error_deg < 0.2
 
 
 def test_weighted_bundle_adjustment_recovers_perturbed_poses(dome_scene, rng):

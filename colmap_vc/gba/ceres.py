@@ -81,14 +81,15 @@ def bundle_adjust_inplace(
     for image_id in sorted(rec.reg_image_ids()):
         config.add_image(image_id)
     config.fix_gauge(pycolmap.BundleAdjustmentGauge.TWO_CAMS_FROM_WORLD)
-    weighted = [] if people is None else weighted_points(rec, people)
+    observed = None if people is None else _people_observations(rec, people)
+    weighted = [] if observed is None else observed.point_ids
     if not weighted:
         adjuster = pycolmap.create_default_ceres_bundle_adjuster(options, config, rec)
         alive = _add_up(adjuster.problem, rec, up)
         summary = _solve(adjuster, options, config)
         del alive
         return summary
-    assert people is not None
+    assert people is not None and observed is not None
     work = pycolmap.Reconstruction(rec)
     anchors = _anchors(work, weighted)
     for point_id in sorted(set(weighted) - set(anchors)):
@@ -97,7 +98,7 @@ def bundle_adjust_inplace(
     for point_id in anchors:
         adjuster.problem.remove_parameter_block(work.point3D(point_id).xyz)
     X = np.array([rec.point3D(p).xyz for p in weighted], dtype=np.float64)
-    keep_alive = _add_weighted(adjuster.problem, rec, work, weighted, X, people)
+    keep_alive = _add_weighted(adjuster.problem, work, observed, X, people)
     keep_alive += _add_up(adjuster.problem, work, up)
     summary = _solve(adjuster, options, config)
     del keep_alive
@@ -157,16 +158,51 @@ def _add_up(
 
 def weighted_points(rec: pycolmap.Reconstruction, people: PeopleNoise) -> list[int]:
     """The model points all of whose observations have a noise, in id order."""
-    out = []
+    return _people_observations(rec, people).point_ids
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class _Observations:
+    """The observations of the weighted points, one row each, in point id order."""
+
+    point_ids: list[int]  # the weighted points, in id order
+    row: np.ndarray  # (M,) int64: the point's index in point_ids
+    image_id: np.ndarray  # (M,) int64
+    point2D_idx: np.ndarray  # (M,) int64
+
+
+def _people_observations(
+    rec: pycolmap.Reconstruction, people: PeopleNoise
+) -> _Observations:
+    """One pass over the model's tracks: the weighted points and their
+    observations (the setup of a bundle adjustment of thousands of people's
+    points is this and adding their residuals, bench/gba_speed.py)."""
+    ids, lengths, image_ids, idxs = [], [], [], []
     for point_id in sorted(rec.point3D_ids()):  # loop over the model's points
         els = rec.point3D(point_id).track.elements
-        if all(
-            e.image_id in people.sigma_px
-            and np.isfinite(people.sigma_px[e.image_id][e.point2D_idx])
-            for e in els
-        ):
-            out.append(point_id)
-    return out
+        ids.append(point_id)
+        lengths.append(len(els))
+        image_ids += [e.image_id for e in els]
+        idxs += [e.point2D_idx for e in els]
+    point_of = np.repeat(np.arange(len(ids)), lengths)
+    image_of = np.asarray(image_ids, dtype=np.int64)
+    idx_of = np.asarray(idxs, dtype=np.int64)
+    finite = np.zeros(len(image_of), dtype=bool)
+    for image_id in np.unique(image_of).tolist():  # loop over images
+        if image_id in people.sigma_px:
+            sel = np.flatnonzero(image_of == image_id)
+            finite[sel] = np.isfinite(people.sigma_px[image_id][idx_of[sel]])
+    bad = np.zeros(len(ids), dtype=bool)
+    np.logical_or.at(bad, point_of, ~finite)
+    keep = ~bad
+    rows = np.cumsum(keep) - 1
+    obs = keep[point_of]
+    return _Observations(
+        point_ids=[p for p, k in zip(ids, keep.tolist(), strict=True) if k],
+        row=rows[point_of[obs]],
+        image_id=image_of[obs],
+        point2D_idx=idx_of[obs],
+    )
 
 
 def _anchors(rec: pycolmap.Reconstruction, weighted: list[int]) -> list[int]:
@@ -213,9 +249,8 @@ def _whitened_params(camera: pycolmap.Camera, sigma_px: float) -> np.ndarray:
 
 def _add_weighted(
     problem: pyceres.Problem,
-    rec: pycolmap.Reconstruction,
     work: pycolmap.Reconstruction,
-    weighted: list[int],
+    observed: _Observations,
     X: np.ndarray,
     people: PeopleNoise,
 ) -> list:
@@ -227,19 +262,11 @@ def _add_weighted(
     (:func:`_whitened_params`, one constant block per camera and sigma), with its
     pixel divided by sigma and a Cauchy loss at its robust scale over sigma.
     """
-    rows, image_ids, idxs = [], [], []
-    for row, point_id in enumerate(weighted):  # loop over the people's points
-        for e in rec.point3D(point_id).track.elements:  # loop over its views
-            rows.append(row)
-            image_ids.append(e.image_id)
-            idxs.append(e.point2D_idx)
-    row_of = np.asarray(rows, dtype=np.int64)
-    image_of = np.asarray(image_ids, dtype=np.int64)
-    idx_of = np.asarray(idxs, dtype=np.int64)
-    sigma = np.empty(len(row_of))
-    robust = np.empty(len(row_of))
-    xy = np.empty((len(row_of), 2))
-    posed = np.zeros(len(row_of), dtype=bool)
+    image_of, idx_of = observed.image_id, observed.point2D_idx
+    sigma = np.empty(len(image_of))
+    robust = np.empty(len(image_of))
+    xy = np.empty((len(image_of), 2))
+    posed = np.zeros(len(image_of), dtype=bool)
     for image_id in np.unique(image_of).tolist():  # loop over images
         sel = np.flatnonzero(image_of == image_id)
         image = work.image(image_id)
@@ -256,10 +283,12 @@ def _add_weighted(
     # Cauchy loss per scale: indices per observation, then a lean loop.
     camera_of = {i: work.image(i).camera_id for i in np.unique(image_of).tolist()}
     cam = np.array([camera_of[i] for i in image_of[obs].tolist()], dtype=np.int64)
-    keys, key_of = np.unique(np.c_[cam, sigma[obs]], axis=0, return_inverse=True)
+    sigmas, sigma_of = np.unique(sigma[obs], return_inverse=True)
+    keys, key_of = np.unique(cam * len(sigmas) + sigma_of, return_inverse=True)
     whitened = []
-    for camera_id, s in keys.tolist():  # loop over (camera, sigma) pairs
-        params = _whitened_params(work.camera(int(camera_id)), s)
+    for key in keys.tolist():  # loop over (camera, sigma) pairs
+        camera_id, s = divmod(key, len(sigmas))
+        params = _whitened_params(work.camera(camera_id), float(sigmas[s]))
         problem.add_parameter_block(params, len(params))
         problem.set_parameter_block_constant(params)
         whitened.append(params)
@@ -268,20 +297,21 @@ def _add_weighted(
     poses = {  # COLMAP's pose blocks
         i: _pose_block(work, work.image(i)) for i in np.unique(image_of[obs]).tolist()
     }
-    models = {i: work.camera(camera_of[i]).model for i in poses}
+    model_of = {i: work.camera(camera_of[i]).model for i in poses}
     points = list(X)  # row views: one parameter block per point
     make = cost_functions.ReprojErrorCost
+    costs = [  # loop over the observations
+        make(model_of[i], p)
+        for i, p in zip(image_of[obs].tolist(), xy[obs], strict=True)
+    ]
     add = problem.add_residual_block
-    alive: list = []
-    for image_id, row, k, loss, p in zip(  # loop over the observations
+    for cost, row, image_id, k, loss in zip(  # loop over the observations
+        costs,
+        observed.row[obs].tolist(),
         image_of[obs].tolist(),
-        row_of[obs].tolist(),
         key_of.ravel().tolist(),
         loss_of.ravel().tolist(),
-        xy[obs],
         strict=True,
     ):
-        cost = make(models[image_id], p)
         add(cost, losses[loss], [points[row], poses[image_id], whitened[k]])
-        alive.append(cost)
-    return alive + whitened + losses
+    return costs + whitened + losses
