@@ -137,7 +137,8 @@ def main() -> None:
     rows = {
         name: {
             "seconds": statistics.median(t for t, _ in r),
-            "iterations": r[0][1],
+            "iterations": statistics.median(i for _, i in r),
+            "iterations_range": [min(i for _, i in r), max(i for _, i in r)],
         }
         for name, r in runs.items()
     }
@@ -166,15 +167,14 @@ def main() -> None:
     )
     lines = [
         "| solver (same model, same observations) | wall time (s) | iterations "
-        "| per iteration (s) |",
+        "(range over the repeats) | per iteration (s) |",
         "|---|---|---|---|",
     ]
     for name, row in rows.items():
-        it = row["iterations"]
+        it, (lo, hi) = row["iterations"], row["iterations_range"]
         per = f"{row['seconds'] / it:.3f}" if it > 0 else "-"
-        lines.append(
-            f"| {name} | {row['seconds']:.2f} | {it if it > 0 else '-'} | {per} |"
-        )
+        its = "-" if it <= 0 else f"{it:g}" if lo == hi else f"{it:g} ({lo}-{hi})"
+        lines.append(f"| {name} | {row['seconds']:.2f} | {its} | {per} |")
     lines += [
         "",
         f"{model.num_reg_images()} images, {model.num_points3D()} points, {num_obs} "
