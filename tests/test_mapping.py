@@ -66,6 +66,52 @@ def test_augmented_dome_registers_every_image_accurately(
     assert ran["database"] == str(augmented.resolve())
     # Clean priors: the camera check moves no camera (none turned, none off).
     assert summary.re_posed == {} and ran["re_posed"] == {}
+    # The written points: none behind its camera, errors as stored.
+    written = pycolmap.Reconstruction(summary.model_dir)
+    errors = np.array([p.error for p in written.points3D.values()])
+    written.update_point_3d_errors()
+    again = np.array([p.error for p in written.points3D.values()])
+    assert written.num_points3D() > 100 and np.allclose(errors, again)
+    assert errors.max() < 1000.0  # a point behind a camera errs by 1e150 px
+
+
+def test_the_written_points_lose_the_refinements_outliers(dome_scene, rng):
+    """An observation behind its camera, or more than ten Cauchy scales from its
+    point, leaves the model; a point left with one view leaves too; the rest and
+    their errors stay."""
+    rec = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    for point_id in list(rec.point3D_ids()):
+        rec.delete_point3D(point_id)
+    ids = sorted(rec.reg_image_ids())[:3]
+    X = rng.normal(0, 0.3, (20, 3)) + [0, -0.9, 0]
+    behind = rec.image(ids[0]).projection_center() - 0.5 * rec.image(
+        ids[0]
+    ).viewing_direction()
+    X = np.vstack([X, behind])
+    uv = {}
+    for i in ids:  # loop over three images: every point's pixel
+        image = rec.image(i)
+        T = image.cam_from_world().matrix()
+        Xc = X @ T[:, :3].T + T[:, 3]
+        Xc[:, 2] = np.abs(Xc[:, 2])  # the point behind image ids[0]: some pixel
+        uv[i] = np.asarray(rec.camera(image.camera_id).img_from_cam(Xc))
+    uv[ids[0]][0] += [300.0, 0.0]  # point 1: one view far off (three views)
+    uv[ids[1]][1] += [0.0, 300.0]  # point 2: far off in one view ...
+    for i in ids:
+        rec.image(i).points2D = pycolmap.Point2DList(
+            [pycolmap.Point2D(p) for p in uv[i]]
+        )
+    for k in range(len(X)):  # loop over the points
+        track = pycolmap.Track()
+        for i in ids if k != 1 else ids[1:]:  # ... with two views
+            track.add_element(i, k)
+        rec.add_point3D(X[k], track)
+    dropped = mapping.outputs.drop_outlier_observations_inplace(rec, 5.0)
+    assert dropped == 1 + 2 + 1  # point 1's bad view, point 2, the one behind
+    assert rec.point3D(1).track.length() == 2 and not rec.exists_point3D(2)
+    assert rec.point3D(21).track.length() == 2
+    assert rec.num_points3D() == 20
+    assert max(p.error for p in rec.points3D.values()) < 1e-6
 
 
 def test_a_plain_database_maps_as_plain_colmap_and_says_why(dome_scene, tmp_path):

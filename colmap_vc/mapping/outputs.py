@@ -1,6 +1,8 @@
 """What `map` writes and reports: the models numbered as COLMAP numbers them, the
-options beside the final one, a reason for every image left out, and the images of
-static cameras given their representative's pose."""
+options beside the final one, the points as the refinement left them (none behind
+its camera, no observation it weighed as an outlier, true errors), a reason for
+every image left out, and the images of static cameras given their
+representative's pose."""
 
 from __future__ import annotations
 
@@ -20,6 +22,37 @@ OUTPUT_MARKER = outputs.marker_name("map")
 
 OPTIONS_FILE = "map_options.json"
 """Beside the final model: the options and inputs `map` ran with."""
+
+OUTLIER_LOSS_SCALES = 10.0
+"""An observation farther than this many of the refinement's Cauchy scales from its
+point's projection weighed less than 1 % of an inlier there (1 / (1 + 10^2)):
+the refinement treated it as an outlier, and the written model leaves it out."""
+
+
+def drop_outlier_observations_inplace(
+    rec: pycolmap.Reconstruction, loss_scale_px: float
+) -> int:
+    """Leave out of ``rec`` the observations behind their camera and those more
+    than :data:`OUTLIER_LOSS_SCALES` times ``loss_scale_px`` (the refinement's
+    Cauchy scale) from their point's projection, with the points left with one
+    view (COLMAP's filters), and store the points' errors as they are now.
+    Returns how many observations left.
+
+    The mapper filters its points at its own threshold, but the refinement and the
+    checks after it move the cameras under a robust loss, and the people's points
+    are never re-filtered: on pose2sim_multi's static cameras, keypoint
+    observations of another person 400-1070 px from their point, on the 16-view
+    speed dome two-view surface points behind a camera, whose error (6.7e153 px)
+    made the model's mean reprojection error, as COLMAP's tools report it,
+    1.7e151 px.
+    """
+    manager = pycolmap.ObservationManager(rec)
+    behind = manager.filter_observations_with_negative_depth()
+    far = manager.filter_points3D_with_large_reprojection_error(
+        OUTLIER_LOSS_SCALES * loss_scale_px, set(rec.point3D_ids())
+    )
+    rec.update_point_3d_errors()
+    return behind + far
 
 
 def number_models(output_dir: Path, best: Path | None) -> Path:

@@ -8,7 +8,8 @@
 5. The cameras' up from the scene's vertical lines (:mod:`.up`; ``--no-gravity``
    skips it).
 6. The metric scale from the people's size.
-7. The outputs: the final model at ``OUTPUT/0`` with the options beside it.
+7. The outputs: the final model at ``OUTPUT/0`` with the options beside it, its
+   points without the observations the refinement weighed as outliers.
 """
 
 from __future__ import annotations
@@ -38,7 +39,9 @@ from .choice import map_images
 from .inputs import MapInputs, read_inputs
 from .options import MappingOptions, MappingSummary
 from .outputs import (
+    OUTLIER_LOSS_SCALES,
     add_static_members_inplace,
+    drop_outlier_observations_inplace,
     number_models,
     static_members_left_out,
     why_unregistered,
@@ -226,6 +229,18 @@ def _map_copy(
     if best is not None and best.num_reg_images() < 2:
         _no_model_left(output_dir, best, left_out)
     lap = time.perf_counter()
+    dropped = 0
+    if best is not None:
+        loss = with_loss_scale(options.keypoint_ba_options, best).loss_scale_px
+        assert loss is not None
+        dropped = drop_outlier_observations_inplace(best, loss)
+        if dropped:
+            logger.info(
+                "outputs: %d observation(s) behind their camera or more than %g px "
+                "from their point (the refinement's outliers) left the model",
+                dropped,
+                OUTLIER_LOSS_SCALES * loss,
+            )
     scale = _metric_scale(best, inputs, options)
     if best is not None and best.num_reg_images() == 2 and inputs.static is None:
         placed = classic_placed(
@@ -245,6 +260,7 @@ def _map_copy(
         add_static_members_inplace(best, inputs.static, inputs.views)
     if best is not None and (
         options.keypoint_ba
+        or dropped
         or left_out
         or inputs.static is not None
         or scale is not None
