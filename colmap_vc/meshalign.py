@@ -46,10 +46,14 @@ def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
     closest to the others (their medoid) and those within :data:`TURNED_DEG` of
     it are averaged (the chordal mean), and the translation is their centroids'
     mean offset under it. Two people whose rotations are farther apart than that
-    give None: nothing says which mesh is turned. One rigid fit of every
-    person's vertices together was 55-155 deg off on a 16-view, 3-person dome
-    where each person's own fit was within 25 deg (bench/out/scenes/
-    speed_dome16; docs/real-data.md, "Several people").
+    say nothing about which mesh is turned: their vertices are fitted together,
+    as one rigid fit (leaving such images without a mesh pose cost
+    pose2sim_single t070 two of its four cameras, whose second "person" is a
+    false detection). One rigid fit of every person's vertices together was
+    55-155 deg off on a 16-view, 3-person dome where each person's own fit was
+    within 25 deg: it rests on where the meshes put the people relative to each
+    other, which monocular depth errors move (docs/real-data.md, "Several
+    people").
     """
     pairs: list[tuple[PersonPrior, PersonPrior]] = []
     if (
@@ -77,7 +81,10 @@ def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
     medoid = int(np.argmin(angle.sum(axis=1)))
     keep = angle[medoid] <= TURNED_DEG
     if keep.sum() < 2 and len(pairs) == 2:
-        return None
+        return procrustes(  # nothing says which mesh is turned: one rigid fit
+            np.concatenate([p.vertices_cam for p, _ in pairs]),
+            np.concatenate([q.vertices_cam for _, q in pairs]),
+        )
     U, _, Vt = np.linalg.svd(R[keep].sum(axis=0))
     mean = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
     src = np.array([p.vertices_cam.mean(axis=0) for p, _ in pairs])[keep]
