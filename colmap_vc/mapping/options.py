@@ -46,9 +46,10 @@ class MappingOptions:
     max_image_prior_deviation_deg: float = 90.0
     """An image whose relative rotations to the other registered images differ from
     the meshes' by more than this (median over its pairs) is left out: its evidence
-    contradicts its own people. The meshes' relative rotations are off by up to 77
-    deg for correctly posed cameras on pose2sim_multi (10-25 deg median), so only a
-    contradiction beyond any mesh error counts (0: no check)."""
+    contradicts its own people. The meshes' relative rotations are off by up to 60
+    deg for the calibrated cameras of pose2sim_multi (14 deg median; an image's
+    median over its pairs up to 55), so only a contradiction beyond any mesh error
+    counts (0: no check)."""
     refine_intrinsics: bool = False
     """Refine focal length and distortion (off: the intrinsics are known)."""
     num_threads: int = 1
