@@ -49,10 +49,11 @@ def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
     say nothing about which mesh is turned: their vertices are fitted together,
     as one rigid fit (leaving such images without a mesh pose cost
     pose2sim_single t070 two of its four cameras, whose second "person" is a
-    false detection). One rigid fit of every person's vertices together was
-    55-155 deg off on a 16-view, 3-person dome where each person's own fit was
-    within 25 deg: it rests on where the meshes put the people relative to each
-    other, which monocular depth errors move (docs/real-data.md, "Several
+    false detection). One rigid fit of every person's vertices together put the
+    16-view, 3-person speed dome's cameras 55-155 deg from its reference image,
+    where each person's own fit was within 25 deg of the truth: it rests on
+    where the meshes put the people relative to each other, which monocular
+    depth errors move (docs/real-data.md, "The meshes' poses with several
     people").
     """
     pairs: list[tuple[PersonPrior, PersonPrior]] = []
