@@ -83,10 +83,11 @@ def test_the_written_points_lose_the_refinements_outliers(dome_scene, rng):
     for point_id in list(rec.point3D_ids()):
         rec.delete_point3D(point_id)
     ids = sorted(rec.reg_image_ids())[:3]
-    X = rng.normal(0, 0.3, (20, 3)) + [0, -0.9, 0]
-    behind = rec.image(ids[0]).projection_center() - 0.5 * rec.image(
-        ids[0]
-    ).viewing_direction()
+    X = rng.normal(0, 0.3, (20, 3)) + np.array([0.0, -0.9, 0.0])
+    behind = (
+        rec.image(ids[0]).projection_center()
+        - 0.5 * rec.image(ids[0]).viewing_direction()
+    )
     X = np.vstack([X, behind])
     uv = {}
     for i in ids:  # loop over three images: every point's pixel
