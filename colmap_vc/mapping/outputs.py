@@ -36,7 +36,7 @@ def drop_outlier_observations_inplace(
     than :data:`OUTLIER_LOSS_SCALES` times ``loss_scale_px`` (the refinement's
     Cauchy scale) from their point's projection, with the points left with one
     view (COLMAP's filters), and store the points' errors as they are now.
-    Returns how many observations left.
+    Returns how many observations were removed.
 
     The mapper filters its points at its own threshold, but the refinement and the
     checks after it move the cameras under a robust loss, and the people's points

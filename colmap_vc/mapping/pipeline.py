@@ -236,7 +236,7 @@ def _map_copy(
         dropped = drop_outlier_observations_inplace(best, loss)
         if dropped:
             logger.info(
-                "outputs: %d observation(s) behind their camera or more than %g px "
+                "outputs: %d observation(s) behind their camera or more than %.0f px "
                 "from their point (the refinement's outliers) left the model",
                 dropped,
                 OUTLIER_LOSS_SCALES * loss,
