@@ -2,10 +2,7 @@
 
 The paper's "deep optimization" analog and colmap-vc's coarse prior: the same person's
 predicted meshes in two cameras (same topology, vertex to vertex) aligned rigidly give
-cam2_from_cam1 up to the meshes' errors (about 10-20 degrees). With several people,
-each person gives a rotation and they are averaged; one rigid fit of all their
-vertices together would rest on where the people stand relative to each other,
-which monocular meshes place by their depth, far less well than their own shape.
+cam2_from_cam1 up to the meshes' errors (about 10-20 degrees), with no gross failures.
 """
 
 from __future__ import annotations
@@ -26,13 +23,6 @@ def procrustes(src: FloatArray, dst: FloatArray) -> FloatArray:
     return np.concatenate([R, (mu_d - R @ mu_s)[:, None]], axis=1)
 
 
-TURNED_DEG = 90.0
-"""A person's rotation farther than this from the others' consensus is a mesh turned
-front to back (a pose estimator that took the back for the front), not a mesh error
-(10-25 deg): it is left out of the average. The same bound as
-``MappingOptions.max_image_prior_deviation_deg``."""
-
-
 def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
     """cam2_from_cam1 (3, 4) from the predicted meshes of the people both images share.
 
@@ -41,20 +31,6 @@ def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
     images with one person each and no ids (what ``colmap-vc priors`` writes for
     one-person scenes) are taken to show the same person, as ``augment``'s geometric
     association takes them. Otherwise an image pair without a shared id gives None.
-
-    Several shared people: each person's rigid fit gives a rotation; the one
-    closest to the others (their medoid) and those within :data:`TURNED_DEG` of
-    it are averaged (the chordal mean), and the translation is their centroids'
-    mean offset under it. Two people whose rotations are farther apart than that
-    say nothing about which mesh is turned: their vertices are fitted together,
-    as one rigid fit (leaving such images without a mesh pose cost
-    pose2sim_single t070 two of its four cameras, whose second "person" is a
-    false detection). One rigid fit of every person's vertices together put the
-    16-view, 3-person speed dome's cameras 55-155 deg from its reference image,
-    where each person's own fit was within 25 deg of the truth: it rests on
-    where the meshes put the people relative to each other, which monocular
-    depth errors move (docs/real-data.md, "The meshes' poses with several
-    people").
     """
     pairs: list[tuple[PersonPrior, PersonPrior]] = []
     if (
@@ -73,25 +49,10 @@ def mesh_alignment(prior1: ImagePrior, prior2: ImagePrior) -> FloatArray | None:
     pairs = [(p, q) for p, q in pairs if len(p.vertices_cam) == len(q.vertices_cam)]
     if not pairs:
         return None
-    if len(pairs) == 1:
-        return procrustes(pairs[0][0].vertices_cam, pairs[0][1].vertices_cam)
-    R = np.stack([procrustes(p.vertices_cam, q.vertices_cam)[:, :3] for p, q in pairs])
-    # Angles between every two people's rotations, from the trace of R_i R_j^T.
-    cos = (np.einsum("iab,jab->ij", R, R) - 1.0) / 2.0
-    angle = np.degrees(np.arccos(np.clip(cos, -1.0, 1.0)))
-    medoid = int(np.argmin(angle.sum(axis=1)))
-    keep = angle[medoid] <= TURNED_DEG
-    if keep.sum() < 2 and len(pairs) == 2:
-        return procrustes(  # nothing says which mesh is turned: one rigid fit
-            np.concatenate([p.vertices_cam for p, _ in pairs]),
-            np.concatenate([q.vertices_cam for _, q in pairs]),
-        )
-    U, _, Vt = np.linalg.svd(R[keep].sum(axis=0))
-    mean = U @ np.diag([1.0, 1.0, np.sign(np.linalg.det(U @ Vt))]) @ Vt
-    src = np.array([p.vertices_cam.mean(axis=0) for p, _ in pairs])[keep]
-    dst = np.array([q.vertices_cam.mean(axis=0) for _, q in pairs])[keep]
-    t = (dst - src @ mean.T).mean(axis=0)
-    return np.concatenate([mean, t[:, None]], axis=1)
+    return procrustes(
+        np.concatenate([p.vertices_cam for p, _ in pairs]),
+        np.concatenate([q.vertices_cam for _, q in pairs]),
+    )
 
 
 def mesh_alignment_poses(

@@ -46,10 +46,12 @@ class MappingOptions:
     max_image_prior_deviation_deg: float = 90.0
     """An image whose relative rotations to the other registered images differ from
     the meshes' by more than this (median over its pairs) is left out: its evidence
-    contradicts its own people. The meshes' relative rotations are off by up to 60
-    deg for the calibrated cameras of pose2sim_multi (14 deg median; an image's
-    median over its pairs up to 55), so only a contradiction beyond any mesh error
-    counts (0: no check)."""
+    contradicts its own people. The meshes' relative rotations are off by up to 56
+    deg for the calibrated cameras of pose2sim_multi (16 deg median; an image's
+    median over its pairs up to 42), so only a contradiction beyond any mesh error
+    counts (0: no check). With several people close together the meshes' layout
+    errs more: a camera posed within 1.5 deg was left out of the 16-view speed
+    dome (docs/real-data.md, "Tried and reverted: the meshes' poses")."""
     refine_intrinsics: bool = False
     """Refine focal length and distortion (off: the intrinsics are known)."""
     num_threads: int = 1
