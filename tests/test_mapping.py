@@ -249,6 +249,69 @@ def test_a_camera_that_contradicts_the_meshes_is_left_out(dome_scene):
     assert np.isfinite(T).all()
 
 
+def test_one_turned_mesh_of_the_most_crowded_image_leaves_no_right_camera_out():
+    """Each pair of images is judged by its own meshes, not through one reference
+    image: six right cameras around three people, the most crowded image's
+    middle person turned front to back, and one image seeing only that person.
+    Through the reference that image's every pair was 180 deg off (it left);
+    by its own pairs only one pair is, and no camera leaves."""
+    import numpy as np
+    from scipy.spatial.transform import Rotation
+
+    from colmap_vc.structs import ImagePrior, PersonPrior, ScenePriors
+
+    rng = np.random.default_rng(0)
+    centres = ([-0.8, 0.0, 0.0], [0.0, 0.0, 0.5], [0.8, 0.0, 0.0])
+    people = [rng.normal(scale=[0.2, 0.5, 0.1], size=(60, 3)) + c for c in centres]
+    turn = Rotation.from_euler("y", 180, degrees=True).as_matrix()
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(
+            camera_id=1,
+            model="PINHOLE",
+            width=640,
+            height=480,
+            params=[500, 500, 320, 240],
+        )
+    )
+    images = {}
+    for i in range(6):  # cameras on a circle, 4 m out, looking at the people
+        a = 2 * np.pi * i / 6
+        R = Rotation.from_euler("y", -a).as_matrix()
+        t = -R @ (4.0 * np.array([np.sin(a), 0.0, -np.cos(a)]))
+        name = f"cam{i:02d}.jpg"
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=name, camera_id=1, image_id=i + 1),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(R), t),
+        )
+        persons = []
+        for k, X in enumerate(people):
+            if i == 3 and k != 1:
+                continue  # cam03 sees the middle person only
+            if i == 0 and k == 1:  # cam00 (three people: the reference) turned it
+                X = (X - X.mean(axis=0)) @ turn.T + X.mean(axis=0)
+            persons.append(
+                PersonPrior(
+                    vertices_cam=X @ R.T + t,
+                    faces=np.zeros((0, 3), dtype=np.int64),
+                    person_id=k,
+                )
+            )
+        images[name] = ImagePrior(image_name=name, persons=tuple(persons))
+    priors = ScenePriors(images=images)
+    assert mapping.leave_out_prior_outliers_inplace(rec, priors, 90.0) == {}
+    assert rec.num_reg_images() == 6
+    # The same check still leaves out cam03 posed on the mirror side.
+    image = rec.image(4)
+    T = image.cam_from_world().matrix()
+    rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
+        pycolmap.Rotation3d(turn @ T[:, :3]), turn @ T[:, 3]
+    )
+    assert list(mapping.leave_out_prior_outliers_inplace(rec, priors, 90.0)) == [
+        "cam03.jpg"
+    ]
+
+
 def test_the_meshes_do_not_judge_two_cameras_classic_matches_place(dome_scene):
     """The `auto` mapper's check of a model against the meshes skips the pairs of
     two images that classic matches place (their relative pose is SIFT's, and a

@@ -18,7 +18,7 @@ from .. import database
 from ..estimators.body import anny_keypoint_mirror
 from ..evaluation import relative_pose, rotation_angle_deg
 from ..keypoint_tracks import person_identities
-from ..meshalign import mesh_alignment_poses
+from ..meshalign import mesh_alignment, mesh_alignment_poses
 from ..priors import read_priors
 from ..static_cameras import StaticCameras, merge_priors
 from ..structs import ScenePriors
@@ -82,8 +82,9 @@ def leave_out_prior_outliers_inplace(
     """Deregister images whose pose contradicts the meshes (image name -> why).
 
     Per registered image: the median over its pairs (with the other registered
-    images the meshes can place) of the rotation difference between the model's
-    and the meshes' relative poses. The worst image above ``max_deviation_deg`` is
+    images it shares people with) of the rotation difference between the model's
+    relative pose and the pair's own mesh alignment. The worst image above
+    ``max_deviation_deg`` is
     left out, then the next, while 3 or more remain (with 2 the images cannot tell
     which of the two is wrong). A wrong camera is worse than none.
     """
@@ -94,33 +95,33 @@ def leave_out_prior_outliers_inplace(
         for i, im in rec.images.items()
         if im.has_pose
     }
-    mesh = mesh_alignment_poses(priors, image_names=set(model) - exempt)
-    placed = sorted(set(mesh) & set(model))
+    names = sorted(n for n in set(model) - exempt if n in priors.images)
+    # Each pair's own alignment (a_from_b), not through one reference image: a
+    # reference whose alignment to an image errs (a turned mesh, people whose
+    # layout the two images' meshes disagree on) gives every pair of that image
+    # the same error, and the median over its pairs no longer protects it.
+    dev: dict[tuple[str, str], float] = {}
+    for i, a in enumerate(names):  # loop over image pairs (cheap 3x3 fits)
+        for b in names[i + 1 :]:
+            T = mesh_alignment(priors.images[b], priors.images[a])
+            if T is not None:
+                dev[a, b] = dev[b, a] = rotation_angle_deg(
+                    relative_pose(model[b][1], model[a][1])[:, :3] @ T[:, :3].T
+                )
+    placed = sorted({a for a, _ in dev})
     left: dict[str, str] = {}
     while len(placed) >= 3:
-        medians = {
-            a: float(
-                np.median(
-                    [
-                        rotation_angle_deg(
-                            relative_pose(model[a][1], model[b][1])[:, :3]
-                            @ relative_pose(mesh[a], mesh[b])[:, :3].T
-                        )
-                        for b in placed
-                        if b != a
-                    ]
-                )
-            )
-            for a in placed
-        }
+        pairs = {a: [dev[a, b] for b in placed if (a, b) in dev] for a in placed}
+        medians = {a: float(np.median(d)) for a, d in pairs.items() if d}
         logger.debug("deviation from the meshes: %s", medians)
-        worst = max(placed, key=lambda a: (medians[a], a))
+        worst = max(medians, key=lambda a: (medians[a], a))
         if medians[worst] <= max_deviation_deg:
             break
         left[worst] = (
             f"left out: its pose contradicts the body meshes (relative rotations "
-            f"{medians[worst]:.0f} deg from theirs, median over {len(placed) - 1} "
-            f"images; more than any mesh error, {max_deviation_deg:g} deg)"
+            f"{medians[worst]:.0f} deg from theirs, median over the "
+            f"{len(pairs[worst])} images it shares people with; more than any "
+            f"mesh error, {max_deviation_deg:g} deg)"
         )
         logger.warning("%s %s", worst, left[worst])
         rec.deregister_frame(rec.image(model[worst][0]).frame_id)
