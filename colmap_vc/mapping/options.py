@@ -45,13 +45,14 @@ class MappingOptions:
     """auto: largest median rotation difference to the mesh prior that is accepted."""
     max_image_prior_deviation_deg: float = 90.0
     """An image whose relative rotations to the other registered images differ from
-    the meshes' by more than this (median over its pairs) is left out: its evidence
-    contradicts its own people. The meshes' relative rotations are off by up to 56
-    deg for the calibrated cameras of pose2sim_multi (16 deg median; an image's
-    median over its pairs up to 42), so only a contradiction beyond any mesh error
-    counts (0: no check). With several people close together the meshes' layout
-    errs more: a camera posed within 1.5 deg was left out of the 16-view speed
-    dome (docs/real-data.md, "Tried and reverted: the meshes' poses")."""
+    the meshes' by more than this (median over its pairs, each pair aligned by its
+    own meshes) is left out: its evidence contradicts its own people. The meshes'
+    relative rotations are off by up to 45 deg for the calibrated cameras of
+    pose2sim_multi (17 deg median; an image's median over its pairs up to 42), so
+    only a contradiction beyond any mesh error counts (0: no check). Judged
+    through one reference image instead, a camera posed within 1.5 deg was left
+    out of the 16-view speed dome, its alignment to the reference 110 deg off
+    (docs/real-data.md, "Mesh check")."""
     refine_intrinsics: bool = False
     """Refine focal length and distortion (off: the intrinsics are known)."""
     num_threads: int = 1
