@@ -1,7 +1,8 @@
 """The people's meshes as a check on a model, and the priors `map` uses.
 
-A model is compared with the coarse camera poses the meshes give (mesh alignment):
-the whole model (:func:`prior_deviation_deg`, `auto` mapper) and each image
+A model is compared with the relative poses the meshes give, each pair of images
+by its own shared people (mesh alignment): the whole model
+(:func:`prior_deviation_deg`, `auto` mapper) and each image
 (:func:`leave_out_prior_outliers_inplace`: a wrong camera is worse than none).
 """
 
@@ -9,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
+from collections.abc import Collection
 from pathlib import Path
 
 import numpy as np
@@ -18,7 +20,7 @@ from .. import database
 from ..estimators.body import anny_keypoint_mirror
 from ..evaluation import relative_pose, rotation_angle_deg
 from ..keypoint_tracks import person_identities
-from ..meshalign import mesh_alignment, mesh_alignment_poses
+from ..meshalign import mesh_alignment
 from ..priors import read_priors
 from ..static_cameras import StaticCameras, merge_priors
 from ..structs import ScenePriors
@@ -26,31 +28,47 @@ from ..structs import ScenePriors
 logger = logging.getLogger(__name__)
 
 
-def prior_deviation_deg(
-    rec: pycolmap.Reconstruction,
-    priors: ScenePriors,
-    exempt: frozenset[str] = frozenset(),
-) -> float:
-    """Median rotation difference (deg) of a model's and the meshes' relative poses,
-    over the pairs of its images not both in ``exempt`` (images that classic
-    matches place: the meshes do not judge their relative pose); 0 without such
-    a pair."""
-    names = {im.name for im in rec.images.values() if im.has_pose}
-    mesh = mesh_alignment_poses(priors, image_names=names)
+def pair_deviations_deg(
+    rec: pycolmap.Reconstruction, priors: ScenePriors, names: Collection[str]
+) -> dict[tuple[str, str], float]:
+    """Rotation difference (deg) between the model's relative pose of two of its
+    posed images ``names`` and their own mesh alignment, keyed both ways, for the
+    pairs that share people.
+
+    Each pair by its own meshes, not through one reference image: a reference
+    whose alignment to an image errs (a mesh turned front to back, people whose
+    layout the two images' meshes disagree on) would give every pair of that
+    image the same error, and a median over pairs would not protect it.
+    """
     model = {
         im.name: im.cam_from_world().matrix()
         for im in rec.images.values()
         if im.has_pose
     }
-    common = sorted(set(mesh) & set(model))
+    posed = sorted(n for n in names if n in model and n in priors.images)
+    dev: dict[tuple[str, str], float] = {}
+    for i, a in enumerate(posed):  # loop over image pairs (3x3 fits, cheap)
+        for b in posed[i + 1 :]:
+            T = mesh_alignment(priors.images[a], priors.images[b])  # b_from_a
+            if T is not None:
+                dev[a, b] = dev[b, a] = rotation_angle_deg(
+                    relative_pose(model[a], model[b])[:, :3] @ T[:, :3].T
+                )
+    return dev
+
+
+def prior_deviation_deg(
+    rec: pycolmap.Reconstruction,
+    priors: ScenePriors,
+    exempt: frozenset[str] = frozenset(),
+) -> float:
+    """Median rotation difference (deg) of a model's and the meshes' relative poses
+    (:func:`pair_deviations_deg`), over the pairs of its images not both in
+    ``exempt`` (images that classic matches place: the meshes do not judge their
+    relative pose); 0 without such a pair."""
+    dev = pair_deviations_deg(rec, priors, {im.name for im in rec.images.values()})
     diffs = [
-        rotation_angle_deg(
-            relative_pose(model[a], model[b])[:, :3]
-            @ relative_pose(mesh[a], mesh[b])[:, :3].T
-        )
-        for i, a in enumerate(common)
-        for b in common[i + 1 :]
-        if not (a in exempt and b in exempt)
+        v for (a, b), v in dev.items() if a < b and not (a in exempt and b in exempt)
     ]
     return float(np.median(diffs)) if diffs else 0.0
 
@@ -83,31 +101,15 @@ def leave_out_prior_outliers_inplace(
 
     Per registered image: the median over its pairs (with the other registered
     images it shares people with) of the rotation difference between the model's
-    relative pose and the pair's own mesh alignment. The worst image above
-    ``max_deviation_deg`` is
-    left out, then the next, while 3 or more remain (with 2 the images cannot tell
-    which of the two is wrong). A wrong camera is worse than none.
+    relative pose and the pair's own mesh alignment (:func:`pair_deviations_deg`).
+    The worst image above ``max_deviation_deg`` is left out, then the next, while
+    3 or more remain (with 2 the images cannot tell which of the two is wrong). A
+    wrong camera is worse than none.
     """
     if max_deviation_deg <= 0:
         return {}
-    model = {
-        im.name: (i, im.cam_from_world().matrix())
-        for i, im in rec.images.items()
-        if im.has_pose
-    }
-    names = sorted(n for n in set(model) - exempt if n in priors.images)
-    # Each pair's own alignment (a_from_b), not through one reference image: a
-    # reference whose alignment to an image errs (a turned mesh, people whose
-    # layout the two images' meshes disagree on) gives every pair of that image
-    # the same error, and the median over its pairs no longer protects it.
-    dev: dict[tuple[str, str], float] = {}
-    for i, a in enumerate(names):  # loop over image pairs (cheap 3x3 fits)
-        for b in names[i + 1 :]:
-            T = mesh_alignment(priors.images[b], priors.images[a])
-            if T is not None:
-                dev[a, b] = dev[b, a] = rotation_angle_deg(
-                    relative_pose(model[b][1], model[a][1])[:, :3] @ T[:, :3].T
-                )
+    image_ids = {im.name: i for i, im in rec.images.items() if im.has_pose}
+    dev = pair_deviations_deg(rec, priors, set(image_ids) - exempt)
     placed = sorted({a for a, _ in dev})
     left: dict[str, str] = {}
     while len(placed) >= 3:
@@ -124,7 +126,7 @@ def leave_out_prior_outliers_inplace(
             f"mesh error, {max_deviation_deg:g} deg)"
         )
         logger.warning("%s %s", worst, left[worst])
-        rec.deregister_frame(rec.image(model[worst][0]).frame_id)
+        rec.deregister_frame(rec.image(image_ids[worst]).frame_id)
         placed.remove(worst)
     return left
 
