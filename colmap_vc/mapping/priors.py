@@ -1,8 +1,7 @@
 """The people's meshes as a check on a model, and the priors `map` uses.
 
-A model is compared with the relative poses the meshes give, each pair of images
-by its own shared people (mesh alignment): the whole model
-(:func:`prior_deviation_deg`, `auto` mapper) and each image
+A model is compared with the relative poses the meshes give (mesh alignment): the
+whole model (:func:`prior_deviation_deg`, `auto` mapper) and each image
 (:func:`leave_out_prior_outliers_inplace`: a wrong camera is worse than none).
 """
 
@@ -20,7 +19,7 @@ from .. import database
 from ..estimators.body import anny_keypoint_mirror
 from ..evaluation import relative_pose, rotation_angle_deg
 from ..keypoint_tracks import person_identities
-from ..meshalign import mesh_alignment
+from ..meshalign import mesh_alignment, mesh_alignment_poses
 from ..priors import read_priors
 from ..static_cameras import StaticCameras, merge_priors
 from ..structs import ScenePriors
@@ -62,13 +61,32 @@ def prior_deviation_deg(
     priors: ScenePriors,
     exempt: frozenset[str] = frozenset(),
 ) -> float:
-    """Median rotation difference (deg) of a model's and the meshes' relative poses
-    (:func:`pair_deviations_deg`), over the pairs of its images not both in
-    ``exempt`` (images that classic matches place: the meshes do not judge their
-    relative pose); 0 without such a pair."""
-    dev = pair_deviations_deg(rec, priors, {im.name for im in rec.images.values()})
+    """Median rotation difference (deg) of a model's and the meshes' relative poses,
+    over the pairs of its images not both in ``exempt`` (images that classic
+    matches place: the meshes do not judge their relative pose); 0 without such
+    a pair.
+
+    The meshes' relative poses here are read through one reference image
+    (:func:`~colmap_vc.meshalign.mesh_alignment_poses`), not pair by pair as the
+    per-image check reads them: the `auto` choice's 35 deg was set on that
+    reading, and reading the pairs instead moved pose2sim_single t050 from 81 to
+    75 AUC@15 and kept pose2sim_multi t090's wrong cam03 (docs/real-data.md)."""
+    names = {im.name for im in rec.images.values() if im.has_pose}
+    mesh = mesh_alignment_poses(priors, image_names=names)
+    model = {
+        im.name: im.cam_from_world().matrix()
+        for im in rec.images.values()
+        if im.has_pose
+    }
+    common = sorted(set(mesh) & set(model))
     diffs = [
-        v for (a, b), v in dev.items() if a < b and not (a in exempt and b in exempt)
+        rotation_angle_deg(
+            relative_pose(model[a], model[b])[:, :3]
+            @ relative_pose(mesh[a], mesh[b])[:, :3].T
+        )
+        for i, a in enumerate(common)
+        for b in common[i + 1 :]
+        if not (a in exempt and b in exempt)
     ]
     return float(np.median(diffs)) if diffs else 0.0
 
