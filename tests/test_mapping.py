@@ -312,6 +312,40 @@ def test_one_turned_mesh_of_the_most_crowded_image_leaves_no_right_camera_out():
     ]
 
 
+def test_two_images_the_mesh_check_leaves_are_adjusted_as_two(
+    dome_scene, augmented, tmp_path, caplog
+):
+    """When the mesh check leaves out all but two images, the two are adjusted
+    again as a two-image model, their surface weighed for two images (24 keypoint
+    observations each, not 6): with 6 their keypoint tracks alone hold the pose,
+    and pose2sim_single t070's cam01-cam03 ended 35 deg off once cam02 left (5
+    deg with 24, as the two mapped alone)."""
+    caplog.set_level("INFO", logger="colmap_vc.keypoint_ba")
+    rec, summary = mapping.run(
+        augmented,
+        dome_scene / "images",
+        tmp_path / "sparse",
+        # Any deviation contradicts: the check leaves images out until two remain.
+        mapping.MappingOptions(num_threads=2, max_image_prior_deviation_deg=1e-12),
+    )
+    assert summary.num_registered == 2 and len(summary.unregistered) == 4
+    assert all(
+        "contradicts the body meshes" in r for r in summary.unregistered.values()
+    )
+    weights = [
+        r.getMessage()
+        for r in caplog.records
+        if "surface-VC observations" in r.getMessage()
+    ]
+    assert "weighing 6 per image" in weights[0], weights
+    assert "weighing 24 per image" in weights[-1], weights
+    metrics = evaluate_reconstruction(
+        rec, pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    )
+    (pair,) = [p for p in metrics.pairs if p.registered]
+    assert pair.rotation_deg < 1.0  # clean priors
+
+
 def test_the_meshes_do_not_judge_two_cameras_classic_matches_place(dome_scene):
     """The `auto` mapper's check of a model against the meshes skips the pairs of
     two images that classic matches place (their relative pose is SIFT's, and a

@@ -203,7 +203,16 @@ def _map_copy(
     timings["refinement"] = time.perf_counter() - lap
     lap = time.perf_counter()
     if best is not None and inputs.priors is not None:
-        left_out.update(_check_against_meshes(best, inputs, options, mirrored, people))
+        meshes_left = _check_against_meshes(best, inputs, options, mirrored, people)
+        left_out.update(meshes_left)
+        if meshes_left and best.num_reg_images() == 2 and options.keypoint_ba:
+            # Two images left: their keypoint tracks alone barely hold the pose,
+            # and the keypoint BA weighs their surface for two images.
+            best, kba = keypoint_bundle_adjustment(
+                database_path, best, options.keypoint_ba_options, mirror=inputs.mirror
+            )
+            models[best_key] = best
+            people, tracks = kba.people, kba.tracks
     timings["checks"] = time.perf_counter() - lap
     lap = time.perf_counter()
     gravity = None
