@@ -205,7 +205,8 @@ def _map_copy(
     if best is not None and inputs.priors is not None:
         meshes_left = _check_against_meshes(best, inputs, options, mirrored, people)
         left_out.update(meshes_left)
-        if meshes_left and best.num_reg_images() == 2 and options.keypoint_ba:
+        two_left = meshes_left and best.num_reg_images() == 2
+        if two_left and best_key is not None and options.keypoint_ba:
             # Two images left: their keypoint tracks alone barely hold the pose,
             # and the keypoint BA weighs their surface for two images.
             best, kba = keypoint_bundle_adjustment(
