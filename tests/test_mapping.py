@@ -255,7 +255,6 @@ def test_one_turned_mesh_of_the_most_crowded_image_leaves_no_right_camera_out():
     middle person turned front to back, and one image seeing only that person.
     Through the reference that image's every pair was 180 deg off (it left);
     by its own pairs only one pair is, and no camera leaves."""
-    import numpy as np
     from scipy.spatial.transform import Rotation
 
     from colmap_vc.structs import ImagePrior, PersonPrior, ScenePriors

@@ -17,7 +17,7 @@ import pycolmap
 
 from .. import database
 from ..estimators.body import anny_keypoint_mirror
-from ..evaluation import relative_pose, rotation_angle_deg
+from ..evaluation import poses_by_name, relative_pose, rotation_angle_deg
 from ..keypoint_tracks import person_identities
 from ..meshalign import mesh_alignment, mesh_alignment_poses
 from ..priors import read_priors
@@ -39,11 +39,7 @@ def pair_deviations_deg(
     layout the two images' meshes disagree on) would give every pair of that
     image the same error, and a median over pairs would not protect it.
     """
-    model = {
-        im.name: im.cam_from_world().matrix()
-        for im in rec.images.values()
-        if im.has_pose
-    }
+    model = poses_by_name(rec)
     posed = sorted(n for n in names if n in model and n in priors.images)
     dev: dict[tuple[str, str], float] = {}
     for i, a in enumerate(posed):  # loop over image pairs (3x3 fits, cheap)
@@ -71,13 +67,8 @@ def prior_deviation_deg(
     per-image check reads them: the `auto` choice's 35 deg was set on that
     reading, and reading the pairs instead moved pose2sim_single t050 from 81 to
     75 AUC@15 and kept pose2sim_multi t090's wrong cam03 (docs/real-data.md)."""
-    names = {im.name for im in rec.images.values() if im.has_pose}
-    mesh = mesh_alignment_poses(priors, image_names=names)
-    model = {
-        im.name: im.cam_from_world().matrix()
-        for im in rec.images.values()
-        if im.has_pose
-    }
+    model = poses_by_name(rec)
+    mesh = mesh_alignment_poses(priors, image_names=set(model))
     common = sorted(set(mesh) & set(model))
     diffs = [
         rotation_angle_deg(
