@@ -249,12 +249,10 @@ def test_a_camera_that_contradicts_the_meshes_is_left_out(dome_scene):
     assert np.isfinite(T).all()
 
 
-def test_one_turned_mesh_of_the_most_crowded_image_leaves_no_right_camera_out():
-    """Each pair of images is judged by its own meshes, not through one reference
-    image: six right cameras around three people, the most crowded image's
-    middle person turned front to back, and one image seeing only that person.
-    Through the reference that image's every pair was 180 deg off (it left);
-    by its own pairs only one pair is, and no camera leaves."""
+def _ring_of_cameras(turn):
+    """Six right cameras on a circle 4 m out around three upright people (point
+    clouds, y their long axis), cam00's middle person turned by ``turn`` about its
+    centre, cam03 seeing only that person: the model and its priors."""
     from scipy.spatial.transform import Rotation
 
     from colmap_vc.structs import ImagePrior, PersonPrior, ScenePriors
@@ -262,7 +260,6 @@ def test_one_turned_mesh_of_the_most_crowded_image_leaves_no_right_camera_out():
     rng = np.random.default_rng(0)
     centres = ([-0.8, 0.0, 0.0], [0.0, 0.0, 0.5], [0.8, 0.0, 0.0])
     people = [rng.normal(scale=[0.2, 0.5, 0.1], size=(60, 3)) + c for c in centres]
-    turn = Rotation.from_euler("y", 180, degrees=True).as_matrix()
     rec = pycolmap.Reconstruction()
     rec.add_camera_with_trivial_rig(
         pycolmap.Camera(
@@ -297,18 +294,63 @@ def test_one_turned_mesh_of_the_most_crowded_image_leaves_no_right_camera_out():
                 )
             )
         images[name] = ImagePrior(image_name=name, persons=tuple(persons))
-    priors = ScenePriors(images=images)
-    assert mapping.leave_out_prior_outliers_inplace(rec, priors, 90.0) == {}
-    assert rec.num_reg_images() == 6
-    # The same check still leaves out cam03 posed on the mirror side.
-    image = rec.image(4)
+    return rec, ScenePriors(images=images)
+
+
+def _turn_pose_inplace(rec, image_id, turn):
+    """Turn an image's camera by ``turn`` (camera frame), its priors as they are."""
+    image = rec.image(image_id)
     T = image.cam_from_world().matrix()
     rec.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
         pycolmap.Rotation3d(turn @ T[:, :3]), turn @ T[:, 3]
     )
+
+
+def test_one_turned_mesh_of_the_most_crowded_image_leaves_no_right_camera_out():
+    """Each pair of images is judged by its own meshes, not through one reference
+    image: six right cameras around three people, the most crowded image's
+    middle person turned front to back, and one image seeing only that person.
+    Through the reference that image's every pair was 180 deg off (it left);
+    by its own pairs only one pair is, and no camera leaves."""
+    from scipy.spatial.transform import Rotation
+
+    turn = Rotation.from_euler("y", 180, degrees=True).as_matrix()
+    rec, priors = _ring_of_cameras(turn)
+    assert mapping.leave_out_prior_outliers_inplace(rec, priors, 90.0) == {}
+    assert rec.num_reg_images() == 6
+    # The same check still leaves out cam03 posed on the mirror side.
+    _turn_pose_inplace(rec, 4, turn)
     assert list(mapping.leave_out_prior_outliers_inplace(rec, priors, 90.0)) == [
         "cam03.jpg"
     ]
+
+
+def test_a_camera_that_tilts_its_people_leaves_a_turned_mesh_does_not():
+    """The people's up check: a mesh turned front to back keeps its long axis,
+    so no right camera leaves; a camera rolled 40 deg about its axis tilts its
+    people 40 deg from the up the other images give them and leaves, with the
+    reason; rolled 15 deg (within the meshes' error) it stays."""
+    from scipy.spatial.transform import Rotation
+
+    rec, priors = _ring_of_cameras(
+        Rotation.from_euler("y", 180, degrees=True).as_matrix()
+    )
+    names = [f"cam{i:02d}.jpg" for i in range(6)]
+    dev = mapping.priors.people_up_deviations_deg(rec, priors, names)
+    assert max(max(d.values()) for d in dev.values()) < 1.0
+    assert mapping.leave_out_tilted_inplace(rec, priors, 25.0) == {}
+    _turn_pose_inplace(rec, 3, Rotation.from_euler("z", 15, degrees=True).as_matrix())
+    assert mapping.leave_out_tilted_inplace(rec, priors, 25.0) == {}
+    _turn_pose_inplace(rec, 3, Rotation.from_euler("z", 25, degrees=True).as_matrix())
+    left = mapping.leave_out_tilted_inplace(rec, priors, 25.0)
+    assert (
+        list(left) == ["cam02.jpg"] and "tilts its people 40 deg" in left["cam02.jpg"]
+    )
+    assert rec.num_reg_images() == 5 and not rec.image(3).has_pose
+    # With the check off (0) nothing is judged.
+    rec2, priors2 = _ring_of_cameras(np.eye(3))
+    _turn_pose_inplace(rec2, 3, Rotation.from_euler("z", 40, degrees=True).as_matrix())
+    assert mapping.leave_out_tilted_inplace(rec2, priors2, 0.0) == {}
 
 
 def test_two_images_the_mesh_check_leaves_are_adjusted_as_two(

@@ -11,7 +11,11 @@ strategy chosen in one place (:mod:`.choice`; the strategies, one function each,
 from .options import Mapper, MappingOptions, MappingSummary
 from .outputs import OPTIONS_FILE, OUTPUT_MARKER, add_static_members_inplace
 from .pipeline import run, run_incremental
-from .priors import leave_out_prior_outliers_inplace, with_associated_ids
+from .priors import (
+    leave_out_prior_outliers_inplace,
+    leave_out_tilted_inplace,
+    with_associated_ids,
+)
 
 __all__ = [
     "OPTIONS_FILE",
@@ -21,6 +25,7 @@ __all__ = [
     "MappingSummary",
     "add_static_members_inplace",
     "leave_out_prior_outliers_inplace",
+    "leave_out_tilted_inplace",
     "run",
     "run_incremental",
     "with_associated_ids",

@@ -53,6 +53,16 @@ class MappingOptions:
     through one reference image instead, a camera posed within 1.5 deg was left
     out of the 16-view speed dome, its alignment to the reference 110 deg off
     (docs/real-data.md, "Mesh check")."""
+    max_people_up_deg: float = 25.0
+    """An image whose pose tilts its people more than this from the up the other
+    images give the same people (median over its people that two or more other
+    images see; each person's up is the long axis of its mesh, turned into the
+    world by the model) is left out, while 3 or more images remain (0: no
+    check). No vertical lines needed. The bound is the gravity step's for a
+    person's up (``GravityOptions.max_hint_deg``): right cameras of pose2sim's
+    ten instants read at most 19 deg, on the calibration's poses as on `map`'s;
+    a detection that merged two people tilted its camera's person 36 deg
+    (pose2sim_multi t090, docs/real-data.md, "Mesh check")."""
     refine_intrinsics: bool = False
     """Refine focal length and distortion (off: the intrinsics are known)."""
     num_threads: int = 1

@@ -47,7 +47,7 @@ from .outputs import (
     why_unregistered,
     write_run_options,
 )
-from .priors import leave_out_prior_outliers_inplace
+from .priors import leave_out_prior_outliers_inplace, leave_out_tilted_inplace
 from .up import refine_with_gravity_inplace, write_gravity
 
 logger = logging.getLogger(__name__)
@@ -330,11 +330,13 @@ def _check_against_meshes(
     people: PeopleNoise | None,
 ) -> dict[str, str]:
     """Leave out the cameras that contradict the meshes, on the final poses (the
-    refinement can carry a camera far from its start); re-adjust if any left.
+    refinement can carry a camera far from its start): their relative rotations
+    (:func:`leave_out_prior_outliers_inplace`), then the up they give each person
+    (:func:`leave_out_tilted_inplace`); re-adjust if any left.
 
     An image re-posed with left and right exchanged has a mesh turned front to
-    back, and an image that classic keypoints place is not judged by its people:
-    the meshes judge neither.
+    back (and leaning the other way), and an image that classic keypoints place
+    is not judged by its people: the meshes judge neither.
     """
     assert inputs.priors is not None
     pinned = {
@@ -345,11 +347,12 @@ def _check_against_meshes(
             options.keypoint_ba_options.min_classic_support,
         )
     }
+    exempt = frozenset(mirrored) | frozenset(pinned)
     left_out = leave_out_prior_outliers_inplace(
-        rec,
-        inputs.priors,
-        options.max_image_prior_deviation_deg,
-        exempt=frozenset(mirrored) | frozenset(pinned),
+        rec, inputs.priors, options.max_image_prior_deviation_deg, exempt=exempt
+    )
+    left_out |= leave_out_tilted_inplace(
+        rec, inputs.priors, options.max_people_up_deg, exempt=exempt
     )
     if left_out:
         scale_px = with_loss_scale(options.keypoint_ba_options, rec).loss_scale_px
