@@ -164,17 +164,19 @@ def min_segment_px(options: GravityOptions, camera: pycolmap.Camera) -> float:
     return max(angle, options.min_segment_floor_px)
 
 
+def long_axis_up(points: FloatArray) -> FloatArray:
+    """(3,) unit major axis of (N, 3) camera-frame points, turned towards the
+    image's top (-y)."""
+    axis = np.linalg.svd(points - points.mean(axis=0), full_matrices=False)[2][0]
+    return axis if axis[1] < 0 else -axis
+
+
 def people_up(persons: Sequence[PersonPrior]) -> FloatArray | None:
     """The people's up in the camera frame: each person's mesh major axis, turned
     towards the image's top (-y), averaged. None without people."""
-    axes = []
-    for p in persons:  # loop over the image's people (a handful)
-        centred = p.vertices_cam - p.vertices_cam.mean(axis=0)
-        axis = np.linalg.svd(centred, full_matrices=False)[2][0]
-        axes.append(axis if axis[1] < 0 else -axis)
-    if not axes:
+    if not persons:
         return None
-    up = np.mean(axes, axis=0)
+    up = np.mean([long_axis_up(p.vertices_cam) for p in persons], axis=0)
     return up / np.linalg.norm(up)
 
 

@@ -329,28 +329,54 @@ def test_a_camera_that_tilts_its_people_leaves_a_turned_mesh_does_not():
     """The people's up check: a mesh turned front to back keeps its long axis,
     so no right camera leaves; a camera rolled 40 deg about its axis tilts its
     people 40 deg from the up the other images give them and leaves, with the
-    reason; rolled 15 deg (within the meshes' error) it stays."""
+    reason; rolled 20 deg (under the 30 deg a wrong camera needs) it stays, and
+    so does one rolled 40 deg among meshes whose own tilts err by 15 deg
+    (within 4.5 times the scene's median)."""
     from scipy.spatial.transform import Rotation
 
+    options = mapping.MappingOptions()
+    bound = (options.max_people_up_deg, options.people_up_ratio)
     rec, priors = _ring_of_cameras(
         Rotation.from_euler("y", 180, degrees=True).as_matrix()
     )
     names = [f"cam{i:02d}.jpg" for i in range(6)]
     dev = mapping.priors.people_up_deviations_deg(rec, priors, names)
     assert max(max(d.values()) for d in dev.values()) < 1.0
-    assert mapping.leave_out_tilted_inplace(rec, priors, 25.0) == {}
-    _turn_pose_inplace(rec, 3, Rotation.from_euler("z", 15, degrees=True).as_matrix())
-    assert mapping.leave_out_tilted_inplace(rec, priors, 25.0) == {}
-    _turn_pose_inplace(rec, 3, Rotation.from_euler("z", 25, degrees=True).as_matrix())
-    left = mapping.leave_out_tilted_inplace(rec, priors, 25.0)
+    assert mapping.leave_out_tilted_inplace(rec, priors, *bound) == {}
+    _turn_pose_inplace(rec, 3, Rotation.from_euler("z", 20, degrees=True).as_matrix())
+    assert mapping.leave_out_tilted_inplace(rec, priors, *bound) == {}
+    _turn_pose_inplace(rec, 3, Rotation.from_euler("z", 20, degrees=True).as_matrix())
+    left = mapping.leave_out_tilted_inplace(rec, priors, *bound)
     assert (
         list(left) == ["cam02.jpg"] and "tilts its people 40 deg" in left["cam02.jpg"]
     )
     assert rec.num_reg_images() == 5 and not rec.image(3).has_pose
+    # Meshes tilted 15 deg each, about random horizontal axes: 40 deg is noise.
+    rec, priors = _ring_of_cameras(np.eye(3))
+    rng = np.random.default_rng(1)
+    noisy = {}
+    for name, ip in priors.images.items():
+        persons = []
+        for p in ip.persons:
+            axis = np.r_[rng.normal(size=1), 0.0, rng.normal(size=1)]
+            tilt = Rotation.from_rotvec(np.radians(15) * axis / np.linalg.norm(axis))
+            c = p.vertices_cam.mean(axis=0)
+            moved = (p.vertices_cam - c) @ tilt.as_matrix().T + c
+            persons.append(dataclasses.replace(p, vertices_cam=moved))
+        noisy[name] = dataclasses.replace(ip, persons=tuple(persons))
+    priors = dataclasses.replace(priors, images=noisy)
+    _turn_pose_inplace(rec, 3, Rotation.from_euler("z", 40, degrees=True).as_matrix())
+    assert mapping.leave_out_tilted_inplace(rec, priors, *bound) == {}
+    # Judged by the 30 deg alone, that camera would leave.
+    alone = mapping.leave_out_tilted_inplace(
+        pycolmap.Reconstruction(rec), priors, bound[0], 0.0
+    )
+    assert list(alone) == ["cam02.jpg"]
     # With the check off (0) nothing is judged.
-    rec2, priors2 = _ring_of_cameras(np.eye(3))
-    _turn_pose_inplace(rec2, 3, Rotation.from_euler("z", 40, degrees=True).as_matrix())
-    assert mapping.leave_out_tilted_inplace(rec2, priors2, 0.0) == {}
+    rec, priors = _ring_of_cameras(np.eye(3))
+    _turn_pose_inplace(rec, 3, Rotation.from_euler("z", 40, degrees=True).as_matrix())
+    assert mapping.leave_out_tilted_inplace(rec, priors, 0.0, bound[1]) == {}
+    assert list(mapping.leave_out_tilted_inplace(rec, priors, *bound)) == ["cam02.jpg"]
 
 
 def test_two_images_the_mesh_check_leaves_are_adjusted_as_two(

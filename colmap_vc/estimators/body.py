@@ -91,6 +91,29 @@ def anny_keypoint_mirror(persons: Sequence[PersonPrior]) -> IndexArray | None:
         return None
 
 
+ARM_KEYPOINTS = ("left_elbow", "right_elbow", "left_wrist", "right_wrist")
+
+
+@functools.lru_cache(maxsize=1)
+def _anny_off_arm_keypoints() -> IndexArray:
+    names = anny_keypoint_names(body_lib.load_bodies())
+    return np.array(
+        [i for i, n in enumerate(names) if n not in ARM_KEYPOINTS], dtype=np.int64
+    )
+
+
+def body_axis_points(person: PersonPrior) -> FloatArray:
+    """Camera-frame points whose long axis is the person's up: an Anny prior's 3D
+    keypoints off the arms (head, trunk, legs: raised or spread arms turn the
+    whole mesh's major axis), else the mesh's vertices."""
+    k = person.keypoints_cam
+    if person.template != TEMPLATE_NAME or k is None:
+        return person.vertices_cam
+    index = _anny_off_arm_keypoints()
+    index = index[index < len(k)]
+    return k[index] if len(index) >= 3 else person.vertices_cam
+
+
 # Bone groups posed by the fit: (name, bones); a chain shares one rotation, split
 # evenly among its bones.
 GROUPS: tuple[tuple[str, tuple[str, ...]], ...] = (

@@ -352,7 +352,11 @@ def _check_against_meshes(
         rec, inputs.priors, options.max_image_prior_deviation_deg, exempt=exempt
     )
     left_out |= leave_out_tilted_inplace(
-        rec, inputs.priors, options.max_people_up_deg, exempt=exempt
+        rec,
+        inputs.priors,
+        options.max_people_up_deg,
+        options.people_up_ratio,
+        exempt=exempt,
     )
     if left_out:
         scale_px = with_loss_scale(options.keypoint_ba_options, rec).loss_scale_px

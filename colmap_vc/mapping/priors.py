@@ -18,14 +18,14 @@ import numpy as np
 import pycolmap
 
 from .. import database
-from ..estimators.body import anny_keypoint_mirror
+from ..estimators.body import anny_keypoint_mirror, body_axis_points
 from ..evaluation import poses_by_name, relative_pose, rotation_angle_deg
-from ..gravity import people_up
+from ..gravity import long_axis_up
 from ..keypoint_tracks import person_identities
 from ..meshalign import mesh_alignment, mesh_alignment_poses
 from ..priors import read_priors
 from ..static_cameras import StaticCameras, merge_priors
-from ..structs import PersonPrior, ScenePriors
+from ..structs import ScenePriors
 
 logger = logging.getLogger(__name__)
 
@@ -148,27 +148,29 @@ def people_up_deviations_deg(
 ) -> dict[str, dict[int, float]]:
     """Per posed image of ``names``, per identified person that two or more other
     posed images of ``names`` see: the angle (deg) between the person's up in this
-    image (the mesh's long axis, :func:`~colmap_vc.gravity.people_up`) and the
-    mean of the other images' ups of that person, all turned into the world by the
-    model.
+    image and the mean of the other images' ups of that person, all turned into
+    the world by the model. A person's up is the long axis of its 3D keypoints
+    off the arms (:func:`~colmap_vc.estimators.body.body_axis_points`; the mesh's
+    for priors without named keypoints); a person's several priors in one image
+    (a static camera's instants) are averaged.
 
     One body seen at one instant has one up, whichever way it leans or is turned:
     a mesh turned front to back (a person seen from the back taken as facing the
     camera) keeps its long axis, where its relative rotation is 180 deg off. The
-    difference is the camera's tilt error plus the meshes' (a person's several
-    meshes in one image, a static camera's instants, are averaged)."""
+    difference is the camera's tilt error plus the meshes'."""
     model = poses_by_name(rec)
     posed = sorted(n for n in names if n in model and n in priors.images)
     world: dict[int, dict[str, np.ndarray]] = {}
     for n in posed:  # loop over images, then their people (a handful)
-        by_id: dict[int, list[PersonPrior]] = {}
+        axes: dict[int, list[np.ndarray]] = {}
         for p in priors.images[n].persons:
             if p.person_id is not None:
-                by_id.setdefault(p.person_id, []).append(p)
-        for pid, persons in by_id.items():
-            up = people_up(persons)
-            if up is not None:
-                world.setdefault(pid, {})[n] = model[n][:, :3].T @ up
+                axes.setdefault(p.person_id, []).append(
+                    long_axis_up(body_axis_points(p))
+                )
+        for pid, a in axes.items():
+            up = np.mean(a, axis=0)
+            world.setdefault(pid, {})[n] = model[n][:, :3].T @ (up / np.linalg.norm(up))
     out: dict[str, dict[int, float]] = {}
     for pid, views in sorted(world.items()):
         if len(views) < 3:
@@ -185,7 +187,8 @@ def people_up_deviations_deg(
 def leave_out_tilted_inplace(
     rec: pycolmap.Reconstruction,
     priors: ScenePriors,
-    max_deg: float,
+    min_deg: float,
+    ratio: float,
     *,
     exempt: frozenset[str] = frozenset(),
 ) -> dict[str, str]:
@@ -193,14 +196,13 @@ def leave_out_tilted_inplace(
     images give the same people (image name -> why).
 
     Per registered image: the median over its people of
-    :func:`people_up_deviations_deg`. The worst image above ``max_deg`` is left
-    out and the others judged again without it, while 3 or more remain. The
-    check needs no vertical lines in the scene (the gravity step's up check
-    does): pose2sim_multi t090's cam03, whose one detection merged two people,
-    is posed 47 deg off and tilts that person 36 deg from the other three
-    cameras' view of them; right cameras of pose2sim's ten instants read at
-    most 19 deg, on the calibration's poses as on `map`'s."""
-    if max_deg <= 0:
+    :func:`people_up_deviations_deg`. The worst image is left out when that is
+    above ``min_deg`` and above ``ratio`` times the median deviation of the other
+    images' people judged without it (the scene's own noise: the meshes' tilt
+    errors depend on the pose estimator); then the others are judged again,
+    while 3 or more remain. The check needs no vertical lines in the scene
+    (the gravity step's up check does). ``min_deg`` <= 0: no check."""
+    if min_deg <= 0:
         return {}
     image_ids = {im.name: i for i, im in rec.images.items() if im.has_pose}
     placed = sorted(set(image_ids) - exempt)
@@ -212,17 +214,26 @@ def leave_out_tilted_inplace(
             break
         logger.debug("people's up against the other images': %s", medians)
         worst = max(medians, key=lambda n: (medians[n], n))
-        if medians[worst] <= max_deg:
+        if medians[worst] <= min_deg:
+            break
+        rest = [n for n in placed if n != worst]
+        spread = [
+            a
+            for d in people_up_deviations_deg(rec, priors, rest).values()
+            for a in d.values()
+        ]
+        if len(spread) < 2 or medians[worst] <= ratio * float(np.median(spread)):
             break
         left[worst] = (
             f"left out: its pose tilts its people {medians[worst]:.0f} deg from the "
             f"up the other images give them (median over {len(dev[worst])} of its "
-            f"people, each seen by two or more other images; more than {max_deg:g} "
-            "deg)"
+            f"people, each seen by two or more other images), more than {min_deg:g} "
+            f"deg and {ratio:g} times the other images' median "
+            f"({float(np.median(spread)):.1f} deg)"
         )
         logger.warning("%s %s", worst, left[worst])
         rec.deregister_frame(rec.image(image_ids[worst]).frame_id)
-        placed.remove(worst)
+        placed = rest
     return left
 
 
