@@ -65,10 +65,10 @@ class MappingOptions:
     not judge (docs/real-data.md, "People's up check")."""
     people_up_ratio: float = 4.5
     """The scene's own noise, for the people's up check: the meshes' tilt errors
-    depend on the pose estimator (median deviation of a right camera 4 deg on the
-    synthetic fitted priors, 9 on the realistic ones, 7 on pose2sim). Over 490
-    right camera views of 58 scenes, those above 30 deg were at most 3.6 times
-    their scene's median; the four wrong cameras caught, 4.9-6.6 times
+    depend on the pose estimator (a right camera's median deviation: 4-5 deg with
+    the synthetic fitted priors, 9 with the realistic ones, 6.5 on pose2sim). Of
+    503 right cameras in 53 scenes, the one above 30 deg was 3.5 times its
+    scene's median; the four wrong cameras the check leaves out, 5.6-7.8 times
     (docs/real-data.md, "People's up check")."""
     refine_intrinsics: bool = False
     """Refine focal length and distortion (off: the intrinsics are known)."""
