@@ -56,7 +56,7 @@ class MappingOptions:
     max_people_up_deg: float = 30.0
     """An image whose pose tilts its people more than this from the up the other
     images give the same people, and more than ``people_up_ratio`` times the
-    other images' median, is left out, while 3 or more images remain (0: no
+    other images' median, is left out, while 4 or more images remain (0: no
     check). A person's up is the long axis of its 3D keypoints off the arms,
     turned into the world by the model; an image's tilt is the median over its
     people that two or more other images see. No vertical lines needed.

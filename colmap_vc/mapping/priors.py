@@ -200,14 +200,15 @@ def leave_out_tilted_inplace(
     above ``min_deg`` and above ``ratio`` times the median deviation of the other
     images' people judged without it (the scene's own noise: the meshes' tilt
     errors depend on the pose estimator); then the others are judged again,
-    while 3 or more remain. The check needs no vertical lines in the scene
+    while 4 or more remain (the others' noise is read from people that three
+    other images see). The check needs no vertical lines in the scene
     (the gravity step's up check does). ``min_deg`` <= 0: no check."""
     if min_deg <= 0:
         return {}
     image_ids = {im.name: i for i, im in rec.images.items() if im.has_pose}
     placed = sorted(set(image_ids) - exempt)
     left: dict[str, str] = {}
-    while len(placed) >= 3:
+    while len(placed) >= 4:
         dev = people_up_deviations_deg(rec, priors, placed)
         medians = {n: float(np.median(list(d.values()))) for n, d in dev.items()}
         if not medians:
