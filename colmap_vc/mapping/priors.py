@@ -137,8 +137,7 @@ def leave_out_prior_outliers_inplace(
             f"{len(pairs[worst])} images it shares people with; more than any "
             f"mesh error, {max_deviation_deg:g} deg)"
         )
-        logger.warning("%s %s", worst, left[worst])
-        rec.deregister_frame(rec.image(image_ids[worst]).frame_id)
+        _leave_out(rec, image_ids[worst], left[worst])
         placed.remove(worst)
     return left
 
@@ -232,10 +231,15 @@ def leave_out_tilted_inplace(
             f"deg and {ratio:g} times the other images' median "
             f"({float(np.median(spread)):.1f} deg)"
         )
-        logger.warning("%s %s", worst, left[worst])
-        rec.deregister_frame(rec.image(image_ids[worst]).frame_id)
+        _leave_out(rec, image_ids[worst], left[worst])
         placed = rest
     return left
+
+
+def _leave_out(rec: pycolmap.Reconstruction, image_id: int, reason: str) -> None:
+    """Deregister an image of the model, with its reason in the log."""
+    logger.warning("%s %s", rec.image(image_id).name, reason)
+    rec.deregister_frame(rec.image(image_id).frame_id)
 
 
 def load_priors(
