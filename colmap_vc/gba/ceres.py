@@ -88,6 +88,7 @@ def bundle_adjust_inplace(
         alive = _add_up(adjuster.problem, rec, up)
         summary = _solve(adjuster, options, config)
         del alive
+        restore_cheirality_inplace(rec)
         return summary
     assert people is not None and observed is not None
     work = pycolmap.Reconstruction(rec)
@@ -110,7 +111,54 @@ def bundle_adjust_inplace(
             rec.point3D(point_id).xyz = point.xyz
     for row, point_id in enumerate(weighted):  # loop over the people's points
         rec.point3D(point_id).xyz = X[row]
+    restore_cheirality_inplace(rec)
     return summary
+
+
+def restore_cheirality_inplace(rec: pycolmap.Reconstruction) -> bool:
+    """Reflect ``rec`` through the origin when most of its observations lie behind
+    their cameras; returns whether it did.
+
+    A reprojection error cannot tell a model from its point reflection (every
+    point X -> -X, every camera centre C -> -C, the rotations kept): a point's
+    coordinates in a camera all change sign, the numerator and the denominator of
+    its projection alike. A Levenberg-Marquardt step from a poor start can cross
+    the cameras' planes and land the whole model there. pose2sim_single t050
+    (`bench/pose2sim.py`, seed 1): the mesh-initialised model, cameras 4-28 deg
+    off and every point in front, came out of the keypoint BA with 594 of its
+    598 observations behind their cameras and the relative translations 177-179
+    deg off; the outputs then dropped every point and kept three wrong cameras.
+    The reflection is the same optimum in front of the cameras. A majority of
+    the observations decides which side the model is on (COLMAP's filter, which
+    also drops a point's last observation in front with it). Models with rigs of
+    several sensors are left as they are (a rig's offsets do not reflect).
+    """
+    total = rec.compute_num_observations()
+    if total == 0:
+        return False
+    probe = pycolmap.Reconstruction(rec)
+    pycolmap.ObservationManager(probe).filter_observations_with_negative_depth()
+    behind = total - probe.compute_num_observations()  # with the points they leave
+    if 2 * behind <= total:
+        return False
+    rigs = {rec.frame(frame_id).rig_id for frame_id in rec.reg_frame_ids()}
+    if any(rec.rig(rig_id).num_sensors() > 1 for rig_id in rigs):
+        logger.warning(
+            "bundle adjustment: %d of %d observations behind their cameras; a "
+            "model with multi-sensor rigs is not reflected back",
+            behind,
+            total,
+        )
+        return False
+    rec.transform(pycolmap.Sim3d(-1.0, pycolmap.Rotation3d(), np.zeros(3)))
+    logger.info(
+        "bundle adjustment: %d of %d observations had crossed behind their "
+        "cameras (the model's point reflection, the same reprojection errors): "
+        "reflected back in front",
+        behind,
+        total,
+    )
+    return True
 
 
 def _solve(
