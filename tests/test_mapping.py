@@ -113,6 +113,10 @@ def test_the_written_points_lose_the_refinements_outliers(dome_scene, rng):
     assert rec.point3D(21).track.length() == 2
     assert rec.num_points3D() == 20
     assert max(p.error for p in rec.points3D.values()) < 1e-6
+    unseen = [rec.image(i).name for i in sorted(rec.reg_image_ids())[3:]]
+    left = mapping.outputs.leave_out_unobserved_inplace(rec)  # nothing places them
+    assert sorted(left) == sorted(unseen) and "nothing places it" in left[unseen[0]]
+    assert sorted(rec.reg_image_ids()) == ids
 
 
 def test_a_plain_database_maps_as_plain_colmap_and_says_why(dome_scene, tmp_path):

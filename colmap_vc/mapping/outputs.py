@@ -55,6 +55,29 @@ def drop_outlier_observations_inplace(
     return behind + far
 
 
+def leave_out_unobserved_inplace(rec: pycolmap.Reconstruction) -> dict[str, str]:
+    """Deregister the images of ``rec`` that hold no observation of a model point
+    (after :func:`drop_outlier_observations_inplace`) -> name: reason.
+
+    Nothing in the model places such an image any more: its pose is whatever the
+    refinement left, and a wrong camera is worse than none. COLMAP's own frame
+    filter deregisters a frame without points for the same reason. Before the
+    refinement reflected models that had crossed behind their cameras
+    (:func:`colmap_vc.gba.ceres.restore_cheirality_inplace`), pose2sim_single t050
+    (seed 1) ended with three such cameras, 177-179 deg off, and no point.
+    """
+    left: dict[str, str] = {}
+    for image_id in sorted(rec.reg_image_ids()):  # loop over the images
+        image = rec.image(image_id)
+        if image.num_points3D == 0:
+            left[image.name] = (
+                "left out: none of its observations is left in the model (behind "
+                "the camera, or outliers of the refinement): nothing places it"
+            )
+            rec.deregister_frame(image.frame_id)
+    return left
+
+
 def number_models(output_dir: Path, best: Path | None) -> Path:
     """The final model at ``output_dir/0``, as COLMAP numbers its first; smaller
     models of other image groups (several components) follow at 1, 2, ... by size.

@@ -42,6 +42,7 @@ from .outputs import (
     OUTLIER_LOSS_SCALES,
     add_static_members_inplace,
     drop_outlier_observations_inplace,
+    leave_out_unobserved_inplace,
     number_models,
     static_members_left_out,
     why_unregistered,
@@ -251,6 +252,12 @@ def _map_copy(
                 dropped,
                 OUTLIER_LOSS_SCALES * loss,
             )
+        unobserved = leave_out_unobserved_inplace(best)
+        for name, reason in unobserved.items():
+            logger.warning("%s %s", name, reason)
+        left_out.update(unobserved)
+        if best.num_reg_images() < 2:
+            _no_model_left(output_dir, best, left_out)
     scale = _metric_scale(best, inputs, options)
     if best is not None and best.num_reg_images() == 2 and inputs.static is None:
         placed = classic_placed(
