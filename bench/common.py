@@ -11,6 +11,8 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "bench" / "out"
 DOCS = ROOT / "docs"
@@ -27,6 +29,30 @@ def add_pose2sim_run_args(
     parser.add_argument("--out", default=out, help=out_help)
     parser.add_argument(
         "--no-docs", action="store_true", help="do not write docs/results.md"
+    )
+
+
+WRONG_DEG = 30.0
+"""A registered camera is wrong when the median error of its pairs is above this
+(evaluation only: a camera that far off is not a noisy camera but a wrong one)."""
+
+
+def wrong_cameras(pairs: list, posed: set[str]) -> list[str]:
+    """The posed images whose pairs with other posed images have a median error
+    above :data:`WRONG_DEG` (``pairs``: :class:`colmap_vc.evaluation.PairError`)."""
+    return sorted(
+        n
+        for n in posed
+        if np.median(
+            [
+                p.error_deg
+                for p in pairs
+                if n in (p.image_name1, p.image_name2)
+                and {p.image_name1, p.image_name2} <= posed
+            ]
+            or [0.0]
+        )
+        > WRONG_DEG
     )
 
 

@@ -24,7 +24,16 @@ import time
 
 import numpy as np
 import pycolmap
-from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
+from common import (
+    DOCS,
+    OUT,
+    WRONG_DEG,
+    machine,
+    replace_section,
+    setup_logging,
+    write_json,
+    wrong_cameras,
+)
 
 from colmap_vc import augment, mapping
 from colmap_vc.evaluation import evaluate_reconstruction, pose_auc
@@ -45,11 +54,6 @@ LABELS = {
     "default": "`map`",
     "gba": "`map --gba`",
 }
-
-
-WRONG_DEG = 30.0
-"""A registered camera is wrong when the median error of its pairs is above this
-(evaluation only: a camera that far off is not a noisy camera but a wrong one)."""
 
 
 def scene_auc(level: str, people: int, seed: int) -> dict[str, dict]:
@@ -97,20 +101,7 @@ def scene_auc(level: str, people: int, seed: int) -> dict[str, dict]:
         pairs = evaluate_reconstruction(rec, gt).pairs
         errors = np.array([p.error_deg for p in pairs])
         posed = {im.name for im in rec.images.values() if im.has_pose}
-        wrong = sorted(
-            n
-            for n in posed
-            if np.median(
-                [
-                    p.error_deg
-                    for p in pairs
-                    if n in (p.image_name1, p.image_name2)
-                    and {p.image_name1, p.image_name2} <= posed
-                ]
-                or [0.0]
-            )
-            > WRONG_DEG
-        )
+        wrong = wrong_cameras(pairs, posed)
         out[arm] = {
             "auc15": 100 * float(pose_auc(errors, [15.0])[0]),
             "registered": len(posed),

@@ -11,8 +11,12 @@ point (``colmap_vc.cli.main``):
 
 ``--orders K`` repeats every instant with K image orders (the order COLMAP's feature
 extraction wrote the images: ids permuted), the spread of AUC@15 is the stability.
+``--seeds 0 1 ...`` maps every instant (camera order) again with each seed of
+augment's RANSAC and of the mapper (``--seed`` of both commands): the run-to-run
+noise of a result, and whether a seed ever leaves a wrong camera.
 
     .venv/bin/python bench/realdata.py [--datasets single multi] [--orders 3]
+        [--seeds 0 1 2 3 4 5]
 
 Writes bench/out/realdata.json and the "realdata" section of docs/results.md.
 """
@@ -32,11 +36,13 @@ from common import (
     DOCS,
     OUT,
     ROOT,
+    WRONG_DEG,
     add_pose2sim_run_args,
     machine,
     replace_section,
     setup_logging,
     write_json,
+    wrong_cameras,
 )
 
 from colmap_vc import cli, database
@@ -242,6 +248,12 @@ def _largest_model(sparse: Path) -> pycolmap.Reconstruction | None:
     return best
 
 
+def _wrong(m: Metrics) -> list[str]:
+    """The wrong cameras of one instant's model (:func:`common.wrong_cameras`)."""
+    posed = {n for p in m.pairs if p.registered for n in (p.image_name1, p.image_name2)}
+    return wrong_cameras(list(m.pairs), posed)
+
+
 def pooled(ms: list[Metrics]) -> dict:
     errors = np.array([p.error_deg for m in ms for p in m.pairs])
     aucs = pose_auc(errors, THRESHOLDS_DEG)
@@ -260,6 +272,14 @@ def main() -> None:
     parser.add_argument("--instants", nargs="+", default=list(INSTANTS))
     parser.add_argument(
         "--orders", type=int, default=1, help="image orders per instant (stability)"
+    )
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        default=[0],
+        help="seeds of augment's RANSAC and the mapper; seed 0 makes the orders' "
+        "table, each other seed maps every instant again in camera order",
     )
     parser.add_argument(
         "--fresh-priors", action="store_true", help="re-estimate cached priors"
@@ -283,6 +303,7 @@ def main() -> None:
         cameras, gt = load_calibration(data)
         cams = sorted({n.split("_")[0] for n in gt})
         per_order: dict[int, dict[str, Metrics]] = {}
+        per_seed: dict[int, dict[str, Metrics]] = {}
         info: dict[str, dict] = {}
         for instant in args.instants:
             images = [f"{c}_{instant}.jpg" for c in cams]
@@ -310,6 +331,8 @@ def main() -> None:
                 )
                 per_order.setdefault(k, {})[instant] = m
                 info[f"{instant}/order{k}"] = {**t, "order": order}
+                if k == 0:
+                    per_seed.setdefault(0, {})[instant] = m
                 logger.info(
                     "%s %s order %d: %d/4 registered, AUC@15 %.1f, median %.1f deg",
                     ds,
@@ -318,6 +341,28 @@ def main() -> None:
                     m.num_registered,
                     m.auc["15"],
                     float(np.median([p.error_deg for p in m.pairs])),
+                )
+            for seed in (x for x in args.seeds if x != 0):  # 0: order 0 above
+                seed_args = ("--seed", str(seed))
+                m, t = run_instant(
+                    data,
+                    images,
+                    cameras,
+                    gt,
+                    out / ds / instant / f"seed{seed}",
+                    priors_dir,
+                    (*args.augment_args.split(), *seed_args),
+                    tuple(args.priors_args.split()),
+                    (*args.map_args.split(), *seed_args),
+                )
+                per_seed.setdefault(seed, {})[instant] = m
+                logger.info(
+                    "%s %s seed %d: %d/4 registered, AUC@15 %.1f",
+                    ds,
+                    instant,
+                    seed,
+                    m.num_registered,
+                    m.auc["15"],
                 )
         assoc = {
             key: sum(r["association"][key] for r in info.values())
@@ -330,6 +375,14 @@ def main() -> None:
                 k: {i: pooled([m]) for i, m in v.items()} for k, v in per_order.items()
             },
             "runs": info,
+            "seeds": {
+                seed: {
+                    "pooled": pooled(list(v.values())),
+                    "per_instant": {i: pooled([m]) for i, m in v.items()},
+                    "wrong_cameras": {i: _wrong(m) for i, m in v.items()},
+                }
+                for seed, v in per_seed.items()
+            },
         }
     elapsed = time.perf_counter() - t_start
     write_json(
@@ -356,18 +409,46 @@ def main() -> None:
                 f"{r['association']['predicted_links']} / "
                 f"{r['association']['true_links']} |"
             )
+    extra = [x for x in args.seeds if x != 0]
+    if extra:
+        lines += [
+            "",
+            "| data | seed | registered | AUC@15 | per instant AUC@15 "
+            "| wrong cameras |",
+            "|---|---|---|---|---|---|",
+        ]
+        for ds, r in results.items():
+            for seed, v in r["seeds"].items():
+                p = v["pooled"]
+                each = " ".join(
+                    f"{x['auc']['15']:.0f}" for x in v["per_instant"].values()
+                )
+                wrong = [n for names in v["wrong_cameras"].values() for n in names]
+                lines.append(
+                    f"| pose2sim_{ds} | {seed} | {p['registered']}/{p['images']} "
+                    f"| {p['auc']['15']:.1f} | {each} | {', '.join(wrong) or 'none'} |"
+                )
+    seeds = f" --seeds {' '.join(map(str, args.seeds))}" if extra else ""
     lines += [
         "",
         f"Measured at commit {machine()['commit']} by `.venv/bin/python "
         f"bench/realdata.py --datasets {' '.join(args.datasets)} --orders "
-        f"{args.orders}{f' --map-args={args.map_args}' if args.map_args else ''}` "
+        f"{args.orders}{seeds}"
+        f"{f' --map-args={args.map_args}' if args.map_args else ''}` "
         f"({elapsed / 60:.0f} min; raw numbers and per-pair errors in "
         f"`bench/out/{args.out}.json`). Each instant is mapped on its own (4 images); "
         "pairs are pooled over the instants; an unregistered image's pairs count "
         "as 180 deg. Image order k > 0: the same images extracted in another order. "
         "Association: links between people of different images (same instant) "
         "against the hand labels of tests/data/pose2sim_people.json, summed over "
-        "instants and orders.",
+        "instants and orders."
+        + (
+            " Seeds: augment's RANSAC and the mapper (`--seed` of both), camera "
+            "order; a wrong camera is registered with a median pair error above "
+            f"{WRONG_DEG:.0f} deg."
+            if seeds
+            else ""
+        ),
     ]
     print("\n".join(lines))
     if args.no_docs:
