@@ -258,6 +258,28 @@ def try_exchange(
             exchange_labels_inplace(
                 rec, tracks, swapped, image_id, pose, num_classic, options, person
             )
-            adjust(rec)
+            if not _adopt_adjusted(rec, trial):
+                adjust(rec)
             return swapped, image_id, identity, as_labelled, exchanged
         tried.add((image_id, identity))
+
+
+def _adopt_adjusted(
+    rec: pycolmap.Reconstruction, trial: pycolmap.Reconstruction
+) -> bool:
+    """Give ``rec`` the poses and points of ``trial``, the same model adjusted, when
+    both hold the same registered frames and points; returns whether it did.
+
+    ``rec`` has just been changed as ``trial`` was before its adjustment, so the
+    adjustment would reach ``trial``'s state again: one bundle adjustment fewer
+    per confirmed exchange."""
+    same = sorted(rec.reg_frame_ids()) == sorted(trial.reg_frame_ids()) and sorted(
+        rec.point3D_ids()
+    ) == sorted(trial.point3D_ids())
+    if not same:
+        return False
+    for frame_id in trial.reg_frame_ids():  # loop over the frames
+        rec.frame(frame_id).rig_from_world = trial.frame(frame_id).rig_from_world
+    for point_id, point in trial.points3D.items():  # loop over the model's points
+        rec.point3D(point_id).xyz = point.xyz
+    return True

@@ -391,7 +391,7 @@ def _posed_where_labels_fit(rec, image_id, xy, points) -> None:
     rec.frame(image.frame_id).rig_from_world = found["cam_from_world"]
 
 
-def _label_check(rec, tracks, num_templates: int):
+def _label_check(rec, tracks, num_templates: int, adjust=_adjust):
     """The camera check where only the label test can fire (the ratio test is
     off), tracks 2000 + k and 2000 + (k ^ 1) left/right counterparts."""
     options = KeypointBaOptions(
@@ -401,7 +401,7 @@ def _label_check(rec, tracks, num_templates: int):
         rec,
         tracks,
         options,
-        _adjust,
+        adjust,
         mirror={2000 + k: 2000 + (k ^ 1) for k in range(num_templates)},
         num_classic=dict.fromkeys(rec.images, 0),
     )
@@ -462,9 +462,14 @@ def test_camera_check_tests_left_and_right_where_no_camera_misses_by_far(
         assert _rotation_deg(image.cam_from_world().matrix(), truth[name]) > 10
     add_keypoint_points(rec, tracks, 2)
     # The ratio test alone would never fire: only the label test can.
-    check = _label_check(rec, tracks, len(points))
+    adjusted = []
+    check = _label_check(
+        rec, tracks, len(points), lambda r: adjusted.append(_adjust(r))
+    )
     assert not check.left_out
     assert check.mirrored == check.relocalised == ([name] if exchanged else [])
+    # The trial's adjustment is the model's: one per confirmed exchange.
+    assert len(adjusted) == (1 if exchanged else 0)
     for im in rec.images.values():
         got = im.cam_from_world().matrix()
         if exchanged:
