@@ -248,6 +248,11 @@ def _largest_model(sparse: Path) -> pycolmap.Reconstruction | None:
     return best
 
 
+def _per_instant(per_instant: dict[str, dict]) -> str:
+    """AUC@15 of each instant, rounded, in instant order."""
+    return " ".join(f"{v['auc']['15']:.0f}" for v in per_instant.values())
+
+
 def _wrong(m: Metrics) -> list[str]:
     """The wrong cameras of one instant's model (:func:`common.wrong_cameras`)."""
     posed = {n for p in m.pairs if p.registered for n in (p.image_name1, p.image_name2)}
@@ -398,9 +403,7 @@ def main() -> None:
     for ds, r in results.items():
         for k, p in r["pooled"].items():
             a = p["auc"]
-            each = " ".join(
-                f"{v['auc']['15']:.0f}" for v in r["per_instant"][k].values()
-            )
+            each = _per_instant(r["per_instant"][k])
             lines.append(
                 f"| pose2sim_{ds} | {k} | {p['registered']}/{p['images']} "
                 f"| {a['15']:.1f} | {a['30']:.1f} | {a['45']:.1f} "
@@ -420,9 +423,7 @@ def main() -> None:
         for ds, r in results.items():
             for seed, v in r["seeds"].items():
                 p = v["pooled"]
-                each = " ".join(
-                    f"{x['auc']['15']:.0f}" for x in v["per_instant"].values()
-                )
+                each = _per_instant(v["per_instant"])
                 wrong = [n for names in v["wrong_cameras"].values() for n in names]
                 lines.append(
                     f"| pose2sim_{ds} | {seed} | {p['registered']}/{p['images']} "
