@@ -273,10 +273,9 @@ def _adopt_adjusted(
     ``rec`` has just been changed as ``trial`` was before its adjustment, so the
     adjustment would reach ``trial``'s state again: one bundle adjustment fewer
     per confirmed exchange."""
-    same = sorted(rec.reg_frame_ids()) == sorted(trial.reg_frame_ids()) and sorted(
-        rec.point3D_ids()
-    ) == sorted(trial.point3D_ids())
-    if not same:
+    if sorted(rec.reg_frame_ids()) != sorted(trial.reg_frame_ids()):
+        return False
+    if sorted(rec.point3D_ids()) != sorted(trial.point3D_ids()):
         return False
     for frame_id in trial.reg_frame_ids():  # loop over the frames
         rec.frame(frame_id).rig_from_world = trial.frame(frame_id).rig_from_world

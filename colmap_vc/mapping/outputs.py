@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import logging
 from pathlib import Path
 
 import pycolmap
@@ -15,6 +16,8 @@ import pycolmap
 from .. import __version__, database, outputs
 from ..static_cameras import StaticCameras
 from .options import MappingOptions, MappingSummary
+
+logger = logging.getLogger(__name__)
 
 OUTPUT_MARKER = outputs.marker_name("map")
 """File `map` writes into its output folder: `--overwrite` removes only such folders."""
@@ -57,7 +60,8 @@ def drop_outlier_observations_inplace(
 
 def leave_out_unobserved_inplace(rec: pycolmap.Reconstruction) -> dict[str, str]:
     """Deregister the images of ``rec`` that hold no observation of a model point
-    (after :func:`drop_outlier_observations_inplace`) -> name: reason.
+    (after :func:`drop_outlier_observations_inplace`), each with its reason in the
+    log -> name: reason.
 
     Nothing in the model places such an image any more: its pose is whatever the
     refinement left, and a wrong camera is worse than none. COLMAP's own frame
@@ -74,6 +78,7 @@ def leave_out_unobserved_inplace(rec: pycolmap.Reconstruction) -> dict[str, str]
                 "left out: none of its observations is left in the model (behind "
                 "the camera, or outliers of the refinement): nothing places it"
             )
+            logger.warning("%s %s", image.name, left[image.name])
             rec.deregister_frame(image.frame_id)
     return left
 

@@ -252,10 +252,7 @@ def _map_copy(
                 dropped,
                 OUTLIER_LOSS_SCALES * loss,
             )
-        unobserved = leave_out_unobserved_inplace(best)
-        for name, reason in unobserved.items():
-            logger.warning("%s %s", name, reason)
-        left_out.update(unobserved)
+        left_out.update(leave_out_unobserved_inplace(best))
         if best.num_reg_images() < 2:
             _no_model_left(output_dir, best, left_out)
     scale = _metric_scale(best, inputs, options)
