@@ -18,6 +18,12 @@ Arms (`colmap-vc map` options):
     .venv/bin/python bench/evidence.py      (about 3 min)
 
 Writes bench/out/evidence.json and the "evidence" section of docs/results.md.
+
+``--seeds 0 1 ...`` maps the per-instant databases of ``bench/realdata.py
+--seeds`` (augment's RANSAC and the mapper at that seed) with every arm instead,
+and compares each arm with `map` paired per seed: whether an arm's difference is
+more than the run-to-run noise. Writes bench/out/evidence_seeds.json and the
+"evidence-seeds" section.
 """
 
 from __future__ import annotations
@@ -67,6 +73,92 @@ def _map(db: Path, images: Path, sparse: Path, extra: list[str]) -> dict:
     )
     rec = _largest_model(sparse) if code == 0 else None
     return {} if rec is None else poses_by_name(rec)
+
+
+def run_seed(ds: str, arm: list[str], seed: int, work: Path) -> list[float]:
+    """One arm on one dataset's per-instant databases of one seed -> AUC@15 each."""
+    data = SHARED / f"pose2sim_{ds}"
+    _, gt = load_calibration(data)
+    aucs = []
+    for instant in INSTANTS:
+        where = "order0" if seed == 0 else f"seed{seed}"
+        db = OUT / "realdata" / ds / instant / where / "database.db"
+        if not db.exists():
+            raise SystemExit(f"{db} missing: run bench/realdata.py --seeds first")
+        pred = _map(db, data / "images", work / instant, [*arm, "--seed", str(seed)])
+        now = {n: g for n, g in gt.items() if instant in n}
+        aucs.append(float(evaluate_poses(pred, now).auc["15"]))
+    return aucs
+
+
+def seeds_table(results: dict, seeds: list[int]) -> str:
+    """Mean per-instant AUC@15 over seeds and each arm's paired difference to `map`."""
+    ref = "keypoints + surface + up (`map`)"
+    datasets = list(next(iter(results.values())))
+    lines = [
+        "| evidence in the refinement | "
+        + " | ".join(
+            f"pose2sim_{ds}: mean AUC@15 (per seed) | - `map` (seeds won-lost)"
+            for ds in datasets
+        )
+        + " |",
+        "|---|" + "---|---|" * len(datasets),
+    ]
+    for arm, per_ds in results.items():
+        cells = []
+        for ds in datasets:
+            # A seed's score: the mean of its instants' AUC@15 (4 images each).
+            mine = np.array([np.mean(per_ds[ds][str(s)]) for s in seeds])
+            base = np.array([np.mean(results[ref][ds][str(s)]) for s in seeds])
+            d = mine - base
+            se = d.std(ddof=1) / np.sqrt(len(d)) if len(d) > 1 else 0.0
+            each = " ".join(f"{x:.1f}" for x in mine)
+            cells.append(f"{mine.mean():.1f} ({each})")
+            cells.append(
+                "-"
+                if arm == ref
+                else f"{d.mean():+.1f} ± {se:.1f} ({(d > 0).sum()}-{(d < 0).sum()})"
+            )
+        lines.append(f"| {arm} | " + " | ".join(cells) + " |")
+    return "\n".join(lines)
+
+
+def main_seeds(datasets: list[str], seeds: list[int], no_docs: bool) -> None:
+    t0 = time.perf_counter()
+    results: dict[str, dict] = {}
+    for name, arm in ARMS.items():
+        key = f"arm{list(ARMS).index(name)}"
+        for ds in datasets:
+            for seed in seeds:
+                work = OUT / "evidence_seeds" / ds / key / f"seed{seed}"
+                aucs = run_seed(ds, arm, seed, work)
+                results.setdefault(name, {}).setdefault(ds, {})[str(seed)] = aucs
+                logger.info("%s %s seed %d: %s", ds, name, seed, aucs)
+    seconds = time.perf_counter() - t0
+    info = machine()
+    write_json(
+        "evidence_seeds.json",
+        {"machine": info, "seconds": seconds, "seeds": seeds, "results": results},
+    )
+    body = seeds_table(results, seeds)
+    print(body)
+    if no_docs:
+        return
+    replace_section(
+        DOCS / "results.md",
+        "evidence-seeds",
+        "### Each kind of evidence, over seeds\n\n"
+        + body
+        + "\n\nThe per-instant arms of the table above, on the databases of "
+        "`bench/realdata.py --seeds` (augment's RANSAC and the mapper at each "
+        "seed; seed 0 is the table above's). A seed's score is the mean of its "
+        "five instants' AUC@15 (4 images each); differences to `map` are paired "
+        "per seed, ± one standard error. "
+        f"Measured at commit {info['commit']} by `.venv/bin/python "
+        f"bench/evidence.py --seeds {' '.join(map(str, seeds))}` "
+        f"({seconds / 60:.0f} min); raw numbers in "
+        "`bench/out/evidence_seeds.json`.",
+    )
 
 
 def run(ds: str, arm: list[str], work: Path) -> dict[str, dict]:
@@ -137,8 +229,17 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--datasets", nargs="+", default=["single", "multi"])
     parser.add_argument("--no-docs", action="store_true")
+    parser.add_argument(
+        "--seeds",
+        nargs="+",
+        type=int,
+        help="per instant only, on the databases of `bench/realdata.py --seeds`",
+    )
     args = parser.parse_args()
     setup_logging()
+    if args.seeds:
+        main_seeds(args.datasets, args.seeds, args.no_docs)
+        return
     t0 = time.perf_counter()
     results: dict[str, dict] = {}
     for name, arm in ARMS.items():
