@@ -4,20 +4,27 @@ Reads the models `bench/accuracy.py` left (the default `map`, "VC + keypoint BA"
 under bench/out/runs/accuracy) and the static-camera models of
 `bench/static_cameras.py`, and compares camera distances with the ground truth:
 the median over camera pairs of model distance / true distance (1 = right size).
+``--instants`` reads the per-instant models of `bench/evidence.py --seeds` instead
+(`map` and `map --gba` on each seed's databases: pose2sim's instants, 4 images
+each) and writes the "scale-instants" section.
 
     .venv/bin/python bench/metric_scale.py   # after bench/accuracy.py
+    .venv/bin/python bench/metric_scale.py --instants  # after evidence.py --seeds
 
 Writes bench/out/metric_scale.json and the "scale" section of docs/results.md.
 """
 
 from __future__ import annotations
 
+import argparse
 import json
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 from common import DOCS, OUT, machine, replace_section, write_json
+from evidence import ARMS
+from realdata import SHARED, load_calibration
 
 from colmap_vc.evaluation import camera_distance_ratio, poses_by_name
 
@@ -31,6 +38,24 @@ def _largest(sparse: Path) -> tuple[pycolmap.Reconstruction, Path] | None:
         if best is None or rec.num_reg_images() > best[0].num_reg_images():
             best = (rec, d.parent)
     return best
+
+
+def per_instant(ds: str, arm: str) -> list[dict]:
+    """The scale of each per-instant model of `bench/evidence.py --seeds`'s ``arm``
+    on pose2sim_``ds`` (4 images; every seed and instant it mapped)."""
+    _, gt = load_calibration(SHARED / f"pose2sim_{ds}")
+    key = f"arm{list(ARMS).index(arm)}"
+    out = []
+    for instant_dir in sorted((OUT / "evidence_seeds" / ds / key).glob("seed*/t*")):
+        found = _largest(instant_dir)
+        if found is None:
+            continue
+        now = {n: g for n, g in gt.items() if instant_dir.name in n}
+        ratio = camera_distance_ratio(poses_by_name(found[0]), now)
+        out.append(
+            {"model": f"{instant_dir.parent.name}/{instant_dir.name}", "ratio": ratio}
+        )
+    return out
 
 
 def main() -> None:
@@ -98,5 +123,65 @@ def main() -> None:
     print("\n".join(lines))
 
 
+def instants_section() -> None:
+    """The "scale-instants" section: pose2sim per instant, every seed, both
+    refinements (the models of `bench/evidence.py --seeds`)."""
+    results = {
+        f"pose2sim_{ds} | `{name}`": per_instant(ds, arm)
+        for ds in ("single", "multi")
+        for name, arm in (
+            ("map", "keypoints + surface + up (`map`)"),
+            ("map --gba", "GBA (`map --gba`): surface tracks by identity + up"),
+        )
+    }
+    write_json("metric_scale_instants.json", {"machine": machine(), **results})
+    lines = [
+        "| data | refinement | models | median ratio | per instant: median "
+        "(range over seeds) | within 5% |",
+        "|---|---|---|---|---|---|",
+    ]
+    for name, items in results.items():
+        r = np.array([it["ratio"] for it in items])
+        when = np.array([it["model"].split("/")[1] for it in items])
+        ok = np.isfinite(r)
+        each = ", ".join(
+            f"{t} {np.median(r[ok & (when == t)]):.3f} "
+            f"({r[ok & (when == t)].min():.3f}-{r[ok & (when == t)].max():.3f})"
+            for t in sorted(set(when[ok].tolist()))
+        )
+        within = int((np.abs(r[ok] - 1.0) <= 0.05).sum())
+        lines.append(
+            f"| {name} | {len(items)} | {np.median(r[ok]):.3f} | {each} "
+            f"| {within}/{len(items)} |"
+        )
+    lines += [
+        "",
+        f"Measured at commit {machine()['commit']} by `.venv/bin/python "
+        "bench/metric_scale.py --instants` on the models of `bench/evidence.py "
+        "--seeds` (each instant's 4 images mapped on their own, with each seed of "
+        "augment and the mapper): the ratio of camera distances as above, one per "
+        "model; *within 5%*: models whose ratio is within 0.95-1.05.",
+    ]
+    replace_section(
+        DOCS / "results.md",
+        "scale-instants",
+        "### Metric scale per instant, over seeds\n\n" + "\n".join(lines),
+    )
+    print("\n".join(lines))
+
+
+def cli() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument(
+        "--instants",
+        action="store_true",
+        help="only pose2sim per instant (after bench/evidence.py --seeds)",
+    )
+    if parser.parse_args().instants:
+        instants_section()
+    else:
+        main()
+
+
 if __name__ == "__main__":
-    main()
+    cli()
