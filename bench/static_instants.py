@@ -120,7 +120,8 @@ def run(
     db = row / "database.db"
     args = ["--static-cameras", PATTERN, "--no-show-progress"]
     seconds = 0.0
-    if not (map_only and db.exists()):
+    done = row / "augmented"  # written once augment has finished on ``db``
+    if not (map_only and done.exists()):
         if row.exists():
             shutil.rmtree(row)  # the bench's own output
         shutil.copytree(
@@ -132,6 +133,7 @@ def run(
         code = cli.main(["augment", str(db), "--priors", str(sub), *args])
         assert code == 0, f"augment failed ({code})"
         seconds = time.perf_counter() - t0
+        done.write_text(f"{seconds:.1f} s\n")
     out = {}
     for variant, extra in VARIANTS.items():  # the same augmented database
         sparse = variant_dir(row, "sparse", extra)
@@ -180,8 +182,8 @@ def main() -> None:
     parser.add_argument(
         "--map-only",
         action="store_true",
-        help="reuse each row's augmented database where it exists (map changed, "
-        "augment did not)",
+        help="reuse each row's augmented database where augment finished on it (map "
+        "changed, augment did not)",
     )
     args = parser.parse_args()
     setup_logging()
