@@ -6,7 +6,8 @@ under bench/out/runs/accuracy) and the static-camera models of
 the median over camera pairs of model distance / true distance (1 = right size).
 ``--instants`` reads the per-instant models of `bench/evidence.py --seeds` instead
 (`map` and `map --gba` on each seed's databases: pose2sim's instants, 4 images
-each) and writes the "scale-instants" section.
+each) and writes bench/out/metric_scale_instants.json and the "scale-instants"
+section.
 
     .venv/bin/python bench/metric_scale.py   # after bench/accuracy.py
     .venv/bin/python bench/metric_scale.py --instants  # after evidence.py --seeds
