@@ -12,7 +12,9 @@ What limits it is the body size a fit assumes from 2D evidence: a person fitted 
 too tall puts every one of their keypoints 5% too far in every view, so the error is
 shared by a person's views and averages out only over different people. The reported
 spread is that of the (image, person) ratios (a robust standard deviation, relative);
-``num_people`` says over how many identities it was taken.
+``num_people`` says over how many identities it was taken. The scale's uncertainty
+(:func:`scale_uncertainty`) adds the size error the views share: one person's fit
+is only as good as that person is close to the size the fit assumes.
 
 On pose2sim_single (one real person, four cameras, five instants) the camera
 distances come out 3.8% short of the calibration, on pose2sim_multi 3.7% long
@@ -40,7 +42,20 @@ from .structs import FloatArray, IndexArray, PersonPrior, ScenePriors
 logger = logging.getLogger(__name__)
 
 SCALE_FILE = "metric_scale.json"
-"""Written next to the model: the scale applied and its spread."""
+"""Written next to the model: the scale applied, its spread and its uncertainty."""
+
+PERSON_SIZE_SD = 0.05
+"""Relative standard deviation of a fitted person's size, shared by every view of
+that person. A fit from the image sees a body's proportions, not its size: adult
+stature varies with a standard deviation of about 7 cm within each sex around
+1.62-1.76 m, 4-4.5%, and about 5.5% over both. Measured against the calibration:
+pose2sim_single's man comes out 1-7% small in the 30 per-instant models (0.93-0.99),
+the pose2sim videos' static cameras 4% small (one man) and 4% large (the man and
+the avatar). With 5%, the truth is within one uncertainty in 18 and within two
+in all of pose2sim_single's 30 per-instant models (`map`, six seeds), 22 and 30
+of pose2sim_multi's; the views' spread alone (0.6-4% on pose2sim_single) put the
+truth within two of it in 8 of that dataset's 60 models, `map` and `map --gba`
+(docs/results.md, "Metric scale per instant, over seeds")."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -51,6 +66,33 @@ class MetricScale:
     spread: float  # relative robust std of the per-(image, person) ratios
     num_person_views: int  # (image, person) ratios the median is taken over
     num_people: int  # distinct identities among them
+    uncertainty: float  # relative standard error of scale (scale_uncertainty)
+
+
+def scale_uncertainty(spread: float, num_person_views: int, num_people: float) -> float:
+    """Relative standard error of the metric scale: the people's shared size error
+    (:data:`PERSON_SIZE_SD`), which averages over people, and the views' own
+    (``spread``, about their person's), which averages over views, added in
+    quadrature. ``num_people`` is the effective number of people, n^2 / sum m_p^2
+    for n views of which m_p show person p (a person seen in most views weighs
+    most)."""
+    if num_person_views < 1 or num_people <= 0:
+        raise ValueError("the scale needs at least one view of one person")
+    return float(np.sqrt(PERSON_SIZE_SD**2 / num_people + spread**2 / num_person_views))
+
+
+def within_person_spread(values: FloatArray, person: IndexArray) -> float:
+    """Robust relative spread of the ratios about their own person's median (the
+    views' error, without the people's differences); the overall spread when no
+    person has two views."""
+    people, which = np.unique(person, return_inverse=True)
+    medians = np.array([np.median(values[which == k]) for k in range(len(people))])
+    counts = np.bincount(which)
+    several = counts[which] >= 2
+    if not several.any():
+        return float(1.4826 * np.median(np.abs(values / np.median(values) - 1.0)))
+    dev = values[several] / medians[which[several]] - 1.0
+    return float(1.4826 * np.median(np.abs(dev)))
 
 
 def estimate_metric_scale(
@@ -122,11 +164,17 @@ def estimate_metric_scale(
     values = np.array(list(ratios.values()))
     scale = hodges_lehmann(values)
     spread = float(1.4826 * np.median(np.abs(values / scale - 1.0)))
+    person = np.array([ident for _, ident in ratios], dtype=np.int64)
+    counts = np.unique(person, return_counts=True)[1]
+    effective = len(values) ** 2 / float(np.sum(counts**2))
     return MetricScale(
         scale=scale,
         spread=spread,
         num_person_views=len(values),
-        num_people=len({ident for _, ident in ratios}),
+        num_people=len(counts),
+        uncertainty=scale_uncertainty(
+            within_person_spread(values, person), len(values), effective
+        ),
     )
 
 

@@ -23,6 +23,7 @@ from colmap_vc.evaluation import (
     poses_by_name,
 )
 from colmap_vc.meshalign import mesh_alignment_poses
+from colmap_vc.metric_scale import PERSON_SIZE_SD
 from colmap_vc.outputs import marker_name
 from colmap_vc.priors import read_priors
 
@@ -59,7 +60,12 @@ def test_augmented_dome_registers_every_image_accurately(
     # Clean priors: every view of both people gives the same scale. The priors
     # carry the people's ids, which are not their indices in the priors.
     assert summary.metric_scale.spread < 0.02, summary.metric_scale
-    assert (summary.model_dir / "metric_scale.json").exists()
+    # Its uncertainty is the people's shared size error (two people), not the
+    # views' agreement: it covers the truth without claiming the views' 2%.
+    scale = json.loads((summary.model_dir / "metric_scale.json").read_text())
+    assert scale["num_people"] == 2
+    assert scale["uncertainty"] >= PERSON_SIZE_SD / np.sqrt(2) > scale["spread"]
+    assert abs(ratio - 1.0) < 2 * scale["uncertainty"]
     assert summary.model_dir == tmp_path / "sparse" / "0"
     ran = json.loads((summary.model_dir / mapping.OPTIONS_FILE).read_text())
     assert ran["options"]["num_threads"] == 2 and ran["registered"] == 6

@@ -5,7 +5,12 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from colmap_vc.metric_scale import hodges_lehmann
+from colmap_vc.metric_scale import (
+    PERSON_SIZE_SD,
+    hodges_lehmann,
+    scale_uncertainty,
+    within_person_spread,
+)
 
 
 def test_hodges_lehmann_is_the_median_of_pair_averages() -> None:
@@ -38,3 +43,35 @@ def test_hodges_lehmann_does_not_depend_on_order_even_when_sampled() -> None:
     assert sampled == pytest.approx(full, abs=0.005)
     with pytest.raises(ValueError, match="at least one"):
         hodges_lehmann(np.array([]))
+
+
+def test_uncertainty_averages_the_size_error_over_people_not_views() -> None:
+    # One person seen by many views that agree: the person's size error stays.
+    assert scale_uncertainty(0.0, 100, 1) == pytest.approx(PERSON_SIZE_SD)
+    assert scale_uncertainty(0.01, 100, 1) == pytest.approx(
+        np.hypot(PERSON_SIZE_SD, 0.001)
+    )
+    # Four people: half of it. The views' spread averages over the views.
+    assert scale_uncertainty(0.0, 8, 4) == pytest.approx(PERSON_SIZE_SD / 2)
+    assert scale_uncertainty(0.2, 4, 4) == pytest.approx(
+        np.hypot(PERSON_SIZE_SD / 2, 0.1)
+    )
+    with pytest.raises(ValueError, match="at least one view"):
+        scale_uncertainty(0.0, 0, 1)
+
+
+def test_views_spread_is_taken_about_each_persons_own_size() -> None:
+    # Two people 15% apart, each person's views within about 1% of each other:
+    # the views' error is 1%, the people's difference is the size error's.
+    rng = np.random.default_rng(5)
+    a, b = 1.0 + rng.normal(0, 0.01, 6), 1.15 + rng.normal(0, 0.01, 6)
+    values, person = np.r_[a, b], np.r_[np.zeros(6), np.ones(6)].astype(np.int64)
+    within = within_person_spread(values, person)
+    assert 0.003 < within < 0.02
+    overall = 1.4826 * np.median(np.abs(values / np.median(values) - 1.0))
+    assert overall > 0.05
+    # One view per person: nothing within a person to measure, the overall one.
+    single = within_person_spread(values[[0, 6]], np.array([0, 1]))
+    assert single == pytest.approx(
+        1.4826 * np.median(np.abs(values[[0, 6]] / np.median(values[[0, 6]]) - 1))
+    )

@@ -140,9 +140,9 @@ class MappingOptions:
     """Options of the vertical vanishing point."""
     metric_scale: bool = True
     """Scale the model to metres from the people's keypoints (colmap_vc/
-    metric_scale.py; the scale and its spread go to metric_scale.json beside the
-    model). Needs keypoint VCs and the priors; otherwise the model keeps COLMAP's
-    arbitrary scale."""
+    metric_scale.py; the scale, its spread and its uncertainty go to
+    metric_scale.json beside the model). Needs keypoint VCs and the priors;
+    otherwise the model keeps COLMAP's arbitrary scale."""
     show_progress: bool = True
     """Log each registered image."""
 

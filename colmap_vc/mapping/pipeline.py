@@ -381,12 +381,14 @@ def _metric_scale(
         return None
     apply_metric_scale_inplace(rec, scale)
     logger.info(
-        "metric scale: x%.4f to metres (spread %.1f%% over %d person views "
-        "of %d people)",
+        "metric scale: x%.4f to metres, +-%.1f%% (the people's size, %d "
+        "%s; their %d views spread %.1f%%)",
         scale.scale,
-        100 * scale.spread,
-        scale.num_person_views,
+        100 * scale.uncertainty,
         scale.num_people,
+        "person" if scale.num_people == 1 else "people",
+        scale.num_person_views,
+        100 * scale.spread,
     )
     return scale
 
