@@ -27,12 +27,12 @@ from common import DOCS, OUT, machine, replace_section, write_json
 from evidence import ARMS
 from realdata import SHARED, load_calibration
 
-from colmap_vc import database
 from colmap_vc.evaluation import camera_distance_ratio, poses_by_name
-from colmap_vc.mapping.priors import load_priors
+from colmap_vc.mapping import MappingOptions
+from colmap_vc.mapping.inputs import read_inputs
+from colmap_vc.mapping.pipeline import people_scale
 from colmap_vc.metric_scale import (
     SCALE_FILE,
-    estimate_metric_scale,
     scale_uncertainty,
 )
 
@@ -59,13 +59,13 @@ def scale_info(folder: Path, database_path: Path | None = None) -> dict:
     info = json.loads(path.read_text())
     if "uncertainty" in info:
         return info
-    names = database.read_views(database_path).image_names if database_path else ()
-    priors = load_priors(database_path, None, names) if database_path else None
     again = (
         None
-        if priors is None or database_path is None
-        else estimate_metric_scale(
-            database_path, pycolmap.Reconstruction(folder), priors
+        if database_path is None
+        else people_scale(
+            pycolmap.Reconstruction(folder),
+            read_inputs(database_path, MappingOptions(), None),
+            None,
         )
     )
     info["uncertainty"] = (
@@ -135,7 +135,8 @@ def main() -> None:
             if found is None:
                 continue
             rec, folder = found
-            info = scale_info(folder)
+            db = level_dir / ARM / "database.db"
+            info = scale_info(folder, db if db.exists() else None)
             ratio = camera_distance_ratio(poses_by_name(rec), gt)
             key = f"{group}, {people} {'person' if people == '1' else 'people'}"
             rows.setdefault(key, {}).setdefault(level_dir.name, []).append(
@@ -149,9 +150,11 @@ def main() -> None:
                 if "distance_ratio" in r:
                     key = f"pose2sim_{ds}, static cameras (20 images), `{variant}`"
                     sparse = "sparse" + variant.removeprefix("map").replace(" --", "_")
+                    where = OUT / "static_cameras" / ds
+                    db = where / "database.db"
                     real[key] = {
                         "ratio": r["distance_ratio"],
-                        **scale_info(OUT / "static_cameras" / ds / sparse / "0"),
+                        **scale_info(where / sparse / "0", db if db.exists() else None),
                     }
     write_json(
         "metric_scale.json", {"machine": machine(), "synthetic": rows, "real": real}

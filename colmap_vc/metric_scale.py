@@ -28,7 +28,7 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
@@ -101,6 +101,7 @@ def estimate_metric_scale(
     priors: ScenePriors,
     *,
     min_track_length: int = 3,
+    instant_of: Mapping[tuple[str, int], str] | None = None,
 ) -> MetricScale | None:
     """Scale of ``rec`` in metres from its people's keypoints (module doc).
 
@@ -108,7 +109,11 @@ def estimate_metric_scale(
     merged priors of the representative images). Keypoint tracks seen by fewer than
     ``min_track_length`` registered images (2 in a two-image model, or where no
     track is longer) are too poorly triangulated to use. None when no keypoint of
-    a prior person is triangulated.
+    a prior person is triangulated. ``instant_of`` (static cameras: the instant of
+    each (image name, index) of a merged prior person) tells the uncertainty
+    which people stood at one instant: those are different people, while the
+    people of different instants may be the same one (their size errors then
+    do not average out).
     """
     database_path = Path(database_path)
     views = database.read_views(database_path)
@@ -131,6 +136,7 @@ def estimate_metric_scale(
         X[tracks.track]
     ).all(axis=1)
     ratios: dict[tuple[int, int], float] = {}
+    instants: dict[int, str] = {}  # identity -> its instant ("": one instant)
     for image_id in np.unique(tracks.image_id[good]):  # loop over images
         sel = good & (tracks.image_id == image_id)
         name = name_of[int(image_id)]
@@ -159,22 +165,38 @@ def estimate_metric_scale(
             d_prior = np.linalg.norm(p.keypoints_cam[j[valid]], axis=1)
             d = d_model[rows][valid]
             ratios[(int(image_id), int(ident))] = float(np.median(d_prior / d))
+            instants[int(ident)] = (instant_of or {}).get((name, k), "")
     if not ratios:
         return None
     values = np.array(list(ratios.values()))
     scale = hodges_lehmann(values)
     spread = float(1.4826 * np.median(np.abs(values / scale - 1.0)))
     person = np.array([ident for _, ident in ratios], dtype=np.int64)
-    counts = np.unique(person, return_counts=True)[1]
-    effective = len(values) ** 2 / float(np.sum(counts**2))
+    people, counts = np.unique(person, return_counts=True)
     return MetricScale(
         scale=scale,
         spread=spread,
         num_person_views=len(values),
         num_people=len(counts),
         uncertainty=scale_uncertainty(
-            within_person_spread(values, person), len(values), effective
+            within_person_spread(values, person),
+            len(values),
+            effective_people(counts, [instants[k] for k in people.tolist()]),
         ),
+    )
+
+
+def effective_people(counts: IndexArray, instants: Sequence[str]) -> float:
+    """How many people's independent size errors the scale averages: at each
+    instant n^2 / sum m_p^2 over its people (n views, m_p of person p; a person
+    seen in most views weighs most), the largest over the instants. The people
+    of one instant are different people; those of different instants may be the
+    same person, whose size error then repeats (a static camera's videos)."""
+    counts = np.asarray(counts, dtype=np.float64)
+    when = np.asarray(instants)
+    return max(
+        float(counts[when == t].sum() ** 2 / np.sum(counts[when == t] ** 2))
+        for t in sorted(set(when.tolist()))
     )
 
 

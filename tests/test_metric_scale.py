@@ -7,6 +7,7 @@ import pytest
 
 from colmap_vc.metric_scale import (
     PERSON_SIZE_SD,
+    effective_people,
     hodges_lehmann,
     scale_uncertainty,
     within_person_spread,
@@ -75,3 +76,14 @@ def test_views_spread_is_taken_about_each_persons_own_size() -> None:
     assert single == pytest.approx(
         1.4826 * np.median(np.abs(values[[0, 6]] / np.median(values[[0, 6]]) - 1))
     )
+
+
+def test_people_of_different_instants_may_be_one_person() -> None:
+    # Two people seen 4 times each at one instant: two independent sizes.
+    assert effective_people(np.array([4, 4]), ["", ""]) == pytest.approx(2.0)
+    # One seen 9 times, one once: the first's size is nearly all of it.
+    assert effective_people(np.array([9, 1]), ["", ""]) == pytest.approx(100 / 82)
+    # A static camera's five instants of one man: five identities, one size.
+    assert effective_people(np.array([4] * 5), list("abcde")) == pytest.approx(1.0)
+    # Two people at each of two instants: two sizes, not four.
+    assert effective_people(np.array([4, 4, 4, 4]), list("aabb")) == pytest.approx(2)

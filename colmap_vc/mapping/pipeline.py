@@ -35,6 +35,7 @@ from ..metric_scale import (
     estimate_metric_scale,
     write_metric_scale,
 )
+from ..static_cameras import merge_priors
 from .choice import map_images
 from .inputs import MapInputs, read_inputs
 from .options import MappingOptions, MappingSummary
@@ -48,7 +49,11 @@ from .outputs import (
     why_unregistered,
     write_run_options,
 )
-from .priors import leave_out_prior_outliers_inplace, leave_out_tilted_inplace
+from .priors import (
+    leave_out_prior_outliers_inplace,
+    leave_out_tilted_inplace,
+    load_priors,
+)
 from .up import refine_with_gravity_inplace, write_gravity
 
 logger = logging.getLogger(__name__)
@@ -255,7 +260,7 @@ def _map_copy(
         left_out.update(leave_out_unobserved_inplace(best))
         if best.num_reg_images() < 2:
             _no_model_left(output_dir, best, left_out)
-    scale = _metric_scale(best, inputs, options)
+    scale = _metric_scale(best, inputs, options, priors_path)
     if best is not None and best.num_reg_images() == 2 and inputs.static is None:
         placed = classic_placed(
             best,
@@ -369,13 +374,36 @@ def _check_against_meshes(
     return left_out
 
 
+def people_scale(
+    rec: pycolmap.Reconstruction, inputs: MapInputs, priors_path: Path | None
+) -> MetricScale | None:
+    """The metric scale of ``rec`` from its people (not applied; None without
+    priors or triangulated keypoints). Static cameras: the instant of each merged
+    person goes with it (the people of different instants may be one person,
+    whose size error repeats)."""
+    if inputs.priors is None:
+        return None
+    instant_of = None
+    if inputs.static is not None:
+        raw = load_priors(inputs.database_path, priors_path, inputs.views.image_names)
+        if raw is not None:
+            _, groups = merge_priors(raw, inputs.static)
+            instant_of = dict(groups)
+    return estimate_metric_scale(
+        inputs.database_path, rec, inputs.priors, instant_of=instant_of
+    )
+
+
 def _metric_scale(
-    rec: pycolmap.Reconstruction | None, inputs: MapInputs, options: MappingOptions
+    rec: pycolmap.Reconstruction | None,
+    inputs: MapInputs,
+    options: MappingOptions,
+    priors_path: Path | None,
 ) -> MetricScale | None:
     """Scale ``rec`` to metres from the people's size (in place) -> the estimate."""
-    if rec is None or inputs.priors is None or not options.metric_scale:
+    if rec is None or not options.metric_scale:
         return None
-    scale = estimate_metric_scale(inputs.database_path, rec, inputs.priors)
+    scale = people_scale(rec, inputs, priors_path)
     if scale is None:
         logger.info("metric scale: no triangulated keypoints: scale arbitrary")
         return None
