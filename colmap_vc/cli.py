@@ -466,6 +466,17 @@ def _run_map(cmd: Map) -> int:
         f"registered {summary.num_registered}/{summary.num_images} images "
         f"({summary.num_models} model(s)); model: {summary.model_dir}\n"
     )
+    scale = summary.metric_scale
+    if scale is not None:
+        people = f"{scale.num_people} {'person' if scale.num_people == 1 else 'people'}"
+        sys.stdout.write(
+            f"  in metres from the people's size: x{scale.scale:.4g}, "
+            f"+-{100 * scale.uncertainty:.1f}% ({people}; metric_scale.json)\n"
+        )
+    elif options.metric_scale:
+        sys.stdout.write(
+            "  scale arbitrary: no keypoint of a person with priors triangulated\n"
+        )
     for name, reason in summary.unregistered.items():
         sys.stdout.write(f"  not registered: {name}: {reason}\n")
     for name, how in summary.re_posed.items():

@@ -53,7 +53,10 @@ def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
         )
         == 0
     )
-    assert "registered 6/6" in capsys.readouterr().out
+    out = capsys.readouterr().out
+    assert "registered 6/6" in out
+    # In metres, with the scale's uncertainty: the people's size, 2 people.
+    assert "in metres from the people's size" in out and "(2 people;" in out
     # the output exists: a second run without --overwrite fails (exit 1), nothing lost
     assert (
         main(
