@@ -255,18 +255,43 @@ def _setup_logging(verbose: bool) -> None:
         set_min_log_level(1)
 
 
-def _load_model(path: Path):  # -> pycolmap.Reconstruction
+def _load_model(path: Path):  # -> (pycolmap.Reconstruction, its folder)
     import pycolmap
 
     if not path.exists():
         raise FileNotFoundError(f"model folder not found: {path}")
     if (path / "images.bin").exists() or (path / "images.txt").exists():
-        return pycolmap.Reconstruction(path)
+        return pycolmap.Reconstruction(path), path
     subs = [p for p in sorted(path.iterdir()) if (p / "images.bin").exists()]
     if not subs:
         raise FileNotFoundError(f"no COLMAP model (images.bin / images.txt) in {path}")
-    models = [pycolmap.Reconstruction(p) for p in subs]
-    return max(models, key=lambda r: r.num_reg_images())
+    models = [(pycolmap.Reconstruction(p), p) for p in subs]
+    return max(models, key=lambda m: m[0].num_reg_images())
+
+
+def _scale_line(model_dir: Path, ratio: float) -> str:
+    """The model's size against the ground truth's: the median ratio of camera
+    distances, and for a model `map` put in metres, how many of its scale's
+    uncertainties that is from 1 (meaningful when the ground truth is in
+    metres)."""
+    import math
+
+    from .metric_scale import SCALE_FILE
+
+    if not math.isfinite(ratio):
+        return ""
+    line = f"camera distances / ground truth's: {ratio:.3f}"
+    path = model_dir / SCALE_FILE
+    if not path.exists():
+        return line + " (the model's scale is arbitrary: no metric_scale.json)"
+    u = float(json.loads(path.read_text()).get("uncertainty", math.nan))
+    if not math.isfinite(u) or u <= 0:
+        return line
+    z = abs(math.log(ratio)) / u if ratio > 0 else math.inf
+    return (
+        f"{line} (model in metres, +-{100 * u:.1f}%: {z:.1f} uncertainties off, "
+        "if the ground truth is in metres)"
+    )
 
 
 def _run_synth(cmd: Synth) -> int:
@@ -306,9 +331,14 @@ def _run_synth(cmd: Synth) -> int:
 
 
 def _run_eval(cmd: Eval) -> int:
-    from .evaluation import evaluate_reconstruction, format_table
+    from .evaluation import (
+        camera_distance_ratio,
+        evaluate_reconstruction,
+        format_table,
+        poses_by_name,
+    )
 
-    pred, gt = _load_model(cmd.pred_model), _load_model(cmd.gt_model)
+    (pred, pred_dir), (gt, _) = _load_model(cmd.pred_model), _load_model(cmd.gt_model)
     names = {im.name for im in pred.images.values()}
     truth = {im.name for im in gt.images.values()}
     if not names & truth:
@@ -327,10 +357,14 @@ def _run_eval(cmd: Eval) -> int:
         )
     metrics = evaluate_reconstruction(pred, gt)
     sys.stdout.write(format_table({"prediction": metrics}) + "\n")
+    ratio = camera_distance_ratio(poses_by_name(pred), poses_by_name(gt))
+    scale = _scale_line(pred_dir, ratio)
+    if scale:
+        sys.stdout.write(scale + "\n")
     if cmd.output is not None:
         from .outputs import jsonable
 
-        payload = jsonable(metrics.to_dict())
+        payload = jsonable({**metrics.to_dict(), "distance_ratio": ratio})
         cmd.output.write_text(json.dumps(payload, indent=1, allow_nan=False))
         logger.info("metrics written to %s", cmd.output)
     if cmd.plot is not None:

@@ -109,6 +109,11 @@ def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
         == 0
     )
     assert json.loads(metrics.read_text())["num_registered"] == 6
+    # The synthetic world is metric: the model's size against it, in uncertainties.
+    ratio = json.loads(metrics.read_text())["distance_ratio"]
+    assert abs(ratio - 1.0) < 0.05
+    out = capsys.readouterr().out
+    assert f"camera distances / ground truth's: {ratio:.3f} (model in metres" in out
     import cv2
 
     curve = cv2.imread(str(plot))
