@@ -276,16 +276,16 @@ def _scale_line(model_dir: Path, ratio: float) -> str:
     metres)."""
     import math
 
-    from .metric_scale import SCALE_FILE
+    from .metric_scale import read_metric_scale
 
     if not math.isfinite(ratio):
         return ""
     line = f"camera distances / ground truth's: {ratio:.3f}"
-    path = model_dir / SCALE_FILE
-    if not path.exists():
+    scale = read_metric_scale(model_dir)
+    if scale is None:
         return line + " (the model's scale is arbitrary: no metric_scale.json)"
-    u = float(json.loads(path.read_text()).get("uncertainty", math.nan))
-    if not math.isfinite(u) or u <= 0:
+    u = scale.uncertainty
+    if u <= 0:
         return line
     z = abs(math.log(ratio)) / u if ratio > 0 else math.inf
     return (

@@ -238,6 +238,21 @@ def apply_metric_scale_inplace(
     rec.transform(pycolmap.Sim3d(estimate.scale, pycolmap.Rotation3d(), np.zeros(3)))
 
 
+def read_metric_scale(model_dir: Path) -> MetricScale | None:
+    """``metric_scale.json`` beside a model, or None: the model's scale is
+    arbitrary. A file written before the uncertainty was reported gets it from
+    its spread and people."""
+    path = Path(model_dir) / SCALE_FILE
+    if not path.is_file():
+        return None
+    info = json.loads(path.read_text())
+    if "uncertainty" not in info:
+        info["uncertainty"] = scale_uncertainty(
+            info["spread"], info["num_person_views"], info["num_people"]
+        )
+    return MetricScale(**info)
+
+
 def write_metric_scale(model_dir: Path, estimate: MetricScale) -> Path:
     """``metric_scale.json`` next to the model."""
     path = Path(model_dir) / SCALE_FILE

@@ -26,10 +26,13 @@ import pycolmap
 from colmap_vc import database
 from colmap_vc.evaluation import (
     THRESHOLDS_DEG,
+    camera_distance_ratio,
     evaluate_reconstruction,
+    poses_by_name,
     relative_pose,
 )
 from colmap_vc.image_io import read_image
+from colmap_vc.metric_scale import read_metric_scale
 from colmap_vc.report_draw import (
     draw_pair,
     epipolar_errors_px,
@@ -347,6 +350,18 @@ def _gravity_section(ctx: _Context) -> str:
     )
 
 
+def _scale_text(model_path: Path | None) -> str:
+    """The model's scale, as `map` wrote it beside the model."""
+    scale = None if model_path is None else read_metric_scale(Path(model_path))
+    if scale is None:
+        return "arbitrary (no metric_scale.json beside the model)"
+    people = "person" if scale.num_people == 1 else "people"
+    return (
+        f"metres, from the people's size: +-{100 * scale.uncertainty:.1f}% "
+        f"({scale.num_people} {people})"
+    )
+
+
 def _summary_section(ctx: _Context, extra_metrics: Mapping[str, Any]) -> str:
     views, inputs = ctx.views, ctx.inputs
     vcs = list(ctx.vc_pairs.values())
@@ -384,7 +399,14 @@ def _summary_section(ctx: _Context, extra_metrics: Mapping[str, Any]) -> str:
                 "mean reprojection error",
                 f"{ctx.model.compute_mean_reprojection_error():.3f} px",
             ],
+            ["scale", _scale_text(inputs.model_path)],
         ]
+        if ctx.gt is not None:
+            ratio = camera_distance_ratio(
+                poses_by_name(ctx.model), poses_by_name(ctx.gt)
+            )
+            if np.isfinite(ratio):
+                rows.append(["camera distances / ground truth's", f"{ratio:.3f}"])
     parts = [
         '<section id="summary"><h2>Summary</h2><div class="cols"><div>',
         table(["", "value"], [[k, fmt(v)] for k, v in rows]),

@@ -2,6 +2,9 @@
 
 from __future__ import annotations
 
+import json
+from pathlib import Path
+
 import numpy as np
 import pytest
 
@@ -9,6 +12,7 @@ from colmap_vc.metric_scale import (
     PERSON_SIZE_SD,
     effective_people,
     hodges_lehmann,
+    read_metric_scale,
     scale_uncertainty,
     within_person_spread,
 )
@@ -87,3 +91,14 @@ def test_people_of_different_instants_may_be_one_person() -> None:
     assert effective_people(np.array([4] * 5), list("abcde")) == pytest.approx(1.0)
     # Two people at each of two instants: two sizes, not four.
     assert effective_people(np.array([4, 4, 4, 4]), list("aabb")) == pytest.approx(2)
+
+
+def test_a_scale_file_without_uncertainty_gets_it_from_its_fields(
+    tmp_path: Path,
+) -> None:
+    assert read_metric_scale(tmp_path) is None  # no file: the scale is arbitrary
+    old = {"scale": 0.8, "spread": 0.02, "num_person_views": 4, "num_people": 1}
+    (tmp_path / "metric_scale.json").write_text(json.dumps(old))
+    scale = read_metric_scale(tmp_path)
+    assert scale is not None and scale.scale == 0.8
+    assert scale.uncertainty == pytest.approx(np.hypot(PERSON_SIZE_SD, 0.01))
