@@ -409,6 +409,9 @@ def test_two_images_the_mesh_check_leaves_are_adjusted_as_two(
     assert all(
         "contradicts the body meshes" in r for r in summary.unregistered.values()
     )
+    # The reasons are kept beside the model, not only in the log.
+    ran = json.loads((summary.model_dir / mapping.OPTIONS_FILE).read_text())
+    assert ran["unregistered"] == summary.unregistered
     weights = [
         r.getMessage()
         for r in caplog.records

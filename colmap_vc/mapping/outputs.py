@@ -126,6 +126,7 @@ def write_run_options(
         "images": summary.num_images,
         "timings_s": summary.timings_s,
         "re_posed": summary.re_posed,
+        "unregistered": summary.unregistered,
     }
     (model_dir / OPTIONS_FILE).write_text(json.dumps(record, indent=1) + "\n")
 
