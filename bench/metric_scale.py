@@ -3,7 +3,9 @@
 Reads the models `bench/accuracy.py` left (the default `map`, "VC + keypoint BA",
 under bench/out/runs/accuracy) and the static-camera models of
 `bench/static_cameras.py`, and compares camera distances with the ground truth:
-the median over camera pairs of model distance / true distance (1 = right size).
+the median over camera pairs of model distance / true distance (1 = right size),
+and how often the truth lies within one and two of the uncertainty `map` reports
+with its scale (models written before it get it estimated again).
 ``--instants`` reads the per-instant models of `bench/evidence.py --seeds` instead
 (`map` and `map --gba` on each seed's databases: pose2sim's instants, 4 images
 each) and writes bench/out/metric_scale_instants.json and the "scale-instants"
