@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import argparse
 import json
+from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
@@ -33,10 +34,7 @@ from colmap_vc.evaluation import camera_distance_ratio, poses_by_name
 from colmap_vc.mapping import MappingOptions
 from colmap_vc.mapping.inputs import read_inputs
 from colmap_vc.mapping.pipeline import people_scale
-from colmap_vc.metric_scale import (
-    SCALE_FILE,
-    scale_uncertainty,
-)
+from colmap_vc.metric_scale import SCALE_FILE, read_metric_scale
 
 ARM = "VC_p_keypoint_BA"
 
@@ -54,29 +52,20 @@ def scale_info(folder: Path, database_path: Path | None = None) -> dict:
     """What `map` wrote beside a model (metric_scale.json). Where the model
     predates the scale's uncertainty, it is estimated again on the model (in
     metres already: the same ratios about 1) with ``database_path``'s priors, or
-    without it from the file's spread and people."""
-    path = folder / SCALE_FILE
-    if not path.exists():
+    without it from the file's spread and people (``read_metric_scale``)."""
+    scale = read_metric_scale(folder)
+    if scale is None:
         return {}
-    info = json.loads(path.read_text())
-    if "uncertainty" in info:
-        return info
-    again = (
-        None
-        if database_path is None
-        else people_scale(
+    info = asdict(scale)
+    written = json.loads((folder / SCALE_FILE).read_text())
+    if database_path is not None and "uncertainty" not in written:
+        again = people_scale(
             pycolmap.Reconstruction(folder),
             read_inputs(database_path, MappingOptions(), None),
             None,
         )
-    )
-    info["uncertainty"] = (
-        again.uncertainty
-        if again is not None
-        else scale_uncertainty(
-            info["spread"], info["num_person_views"], info["num_people"]
-        )
-    )
+        if again is not None:
+            info["uncertainty"] = again.uncertainty
     return info
 
 
