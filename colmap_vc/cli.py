@@ -284,9 +284,7 @@ def _scale_line(model_dir: Path, ratio: float) -> str:
     scale = read_metric_scale(model_dir)
     if scale is None:
         return line + " (the model's scale is arbitrary: no metric_scale.json)"
-    u = scale.uncertainty
-    if u <= 0:
-        return line
+    u = scale.uncertainty  # positive: at least the people's size error
     z = abs(math.log(ratio)) / u if ratio > 0 else math.inf
     return (
         f"{line} (model in metres, +-{100 * u:.1f}%: {z:.1f} uncertainties off, "

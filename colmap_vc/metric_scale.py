@@ -245,12 +245,18 @@ def read_metric_scale(model_dir: Path) -> MetricScale | None:
     path = Path(model_dir) / SCALE_FILE
     if not path.is_file():
         return None
-    info = json.loads(path.read_text())
-    if "uncertainty" not in info:
-        info["uncertainty"] = scale_uncertainty(
-            info["spread"], info["num_person_views"], info["num_people"]
-        )
-    return MetricScale(**info)
+    try:
+        info = json.loads(path.read_text())
+        if "uncertainty" not in info:
+            info["uncertainty"] = scale_uncertainty(
+                info["spread"], info["num_person_views"], info["num_people"]
+            )
+        return MetricScale(**info)
+    except (ValueError, KeyError, TypeError) as error:
+        raise ValueError(
+            f"{path} is not a metric scale `map` wrote ({error!r}); delete it "
+            "or map again"
+        ) from error
 
 
 def write_metric_scale(model_dir: Path, estimate: MetricScale) -> Path:

@@ -102,3 +102,12 @@ def test_a_scale_file_without_uncertainty_gets_it_from_its_fields(
     scale = read_metric_scale(tmp_path)
     assert scale is not None and scale.scale == 0.8
     assert scale.uncertainty == pytest.approx(np.hypot(PERSON_SIZE_SD, 0.01))
+
+
+def test_a_broken_scale_file_names_itself(tmp_path: Path) -> None:
+    (tmp_path / "metric_scale.json").write_text('{"scale": 0.8}')
+    with pytest.raises(ValueError, match=r"metric_scale\.json.*spread"):
+        read_metric_scale(tmp_path)
+    (tmp_path / "metric_scale.json").write_text("{not json")
+    with pytest.raises(ValueError, match=r"metric_scale\.json is not a metric scale"):
+        read_metric_scale(tmp_path)
