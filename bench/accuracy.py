@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
-from common import DOCS, OUT, machine, setup_logging, write_json
+from common import DOCS, OUT, machine, scene_is_current, setup_logging, write_json
 
 from colmap_vc import augment, database, mapping
 from colmap_vc.baselines import mesh_alignment_poses, run_classic
@@ -115,7 +115,7 @@ def scene(
     crowd = people >= 3
     wanted = [path / "database.db", path / "priors_hard", path / "priors_clean"]
     wanted += [gt_persons_path(path, folder) for folder in LEVELS.values()]
-    if not all(p.exists() for p in wanted):
+    if not (all(p.exists() for p in wanted) and scene_is_current(path)):
         generate(
             preset,
             path,

@@ -30,6 +30,7 @@ from common import (
     WRONG_DEG,
     machine,
     replace_section,
+    scene_is_current,
     setup_logging,
     write_json,
     wrong_cameras,
@@ -60,7 +61,8 @@ def scene_auc(level: str, people: int, seed: int) -> dict[str, dict]:
     """Per arm on one fresh dome (made once, kept under bench/out): AUC@15, the
     registered images and the wrong cameras among them."""
     path = OUT / "scenes" / f"seeds_dome_p{people}_s{seed}_{level}"
-    if not (path / "database.db").exists():
+    stale = not ((path / "database.db").exists() and scene_is_current(path))
+    if stale:
         generate(
             "dome",
             path,
@@ -77,7 +79,7 @@ def scene_auc(level: str, people: int, seed: int) -> dict[str, dict]:
     gt = pycolmap.Reconstruction(path / "gt" / "sparse")
     work = OUT / "runs" / "gba_seeds" / path.name
     augmented = work / "augmented.db"
-    if not augmented.exists():
+    if stale or not augmented.exists():
         work.mkdir(parents=True, exist_ok=True)
         shutil.copyfile(path / "database.db", work / "tmp.db")
         augment.run(

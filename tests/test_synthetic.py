@@ -14,7 +14,7 @@ import pytest
 from colmap_vc import raycast
 from colmap_vc.evaluation import rotation_angle_deg
 from colmap_vc.priors import read_priors
-from colmap_vc.synthetic import SynthOptions, generate
+from colmap_vc.synthetic import SynthOptions, generate, noise
 from colmap_vc.synthetic.gt import (
     FALSE_DETECTION,
     FALSE_ID_BASE,
@@ -123,6 +123,46 @@ def test_predicted_priors_follow_the_noise_model(dome_scene):
             assert 0.7 <= p.confidence <= 0.95
     assert 3.0 < np.median(rotations) < 20.0
     assert np.median(joint_px) < 15.0
+
+
+def test_a_persons_size_error_is_shared_by_its_views(dome_scene):
+    """Every view of a person errs about its size alike (scene.json's
+    ``size_error``), and a view adds a smaller error of its own."""
+    spec = json.loads((dome_scene / "scene.json").read_text())
+    shared = {p["person_id"]: p["size_error"]["realistic"] for p in spec["people"]}
+    low, high = noise.NOISE_LEVELS[noise.NoiseLevel.REALISTIC].person_size_error
+    assert all(low <= abs(e) <= high for e in shared.values())
+    gt = read_priors(dome_scene / "gt" / "priors")
+    pred = read_priors(dome_scene / "priors")
+    who = read_gt_persons(gt_persons_path(dome_scene))
+
+    def size(v: np.ndarray) -> float:
+        return float(np.sqrt(((v - v.mean(0)) ** 2).sum(1).mean()))
+
+    ratios: dict[int, list[float]] = {}
+    for name, image_prior in pred.images.items():
+        truth = {p.person_id: p for p in gt.images[name].persons}
+        for p, true_id in zip(image_prior.persons, who.images[name], strict=True):
+            if true_id != FALSE_DETECTION:
+                t = truth[true_id].vertices_cam
+                ratios.setdefault(true_id, []).append(size(p.vertices_cam) / size(t))
+    assert set(ratios) == set(shared)
+    for person_id, r in ratios.items():
+        # The view's own error (up to 5%) and the other phenotype's proportions
+        # spread the views about the person's size.
+        assert np.median(r) == pytest.approx(1.0 + shared[person_id], abs=0.03)
+
+
+def test_person_size_error_depends_on_the_person_only():
+    model = noise.NOISE_LEVELS[noise.NoiseLevel.REALISTIC]
+    errors = [noise.person_size_error(model, 3, person_id) for person_id in range(40)]
+    assert errors == [noise.person_size_error(model, 3, i) for i in range(40)]
+    assert all(0.03 <= abs(e) <= 0.08 for e in errors)
+    assert 5 < sum(e > 0 for e in errors) < 35  # either sign
+    assert noise.person_size_error(model, 4, 0) != errors[0]
+    assert noise.person_size_error(model, 3, FALSE_DETECTION) == 0.0
+    clean = noise.NOISE_LEVELS[noise.NoiseLevel.CLEAN]
+    assert noise.person_size_error(clean, 3, 0) == 0.0
 
 
 def test_clean_priors_are_the_ground_truth(dome_scene):

@@ -235,3 +235,22 @@ def test_world_landmarks_have_the_measured_spread_per_axis(person):
     assert abs(np.corrcoef(flat[:, k, 0], draws[:, k, 2])[0, 1]) < 0.05
     unfitted = np.setdiff1d(np.arange(NUM_LANDMARKS), template.landmark_idx)
     assert np.abs(draws[:, unfitted]).max() == 0.0
+
+
+def test_the_persons_size_error_scales_the_fitted_body_and_its_depth(person):
+    exact = _prior(person, np.random.default_rng(0))
+    larger = _prior(person, np.random.default_rng(0), size_error=0.1)
+    assert exact is not None and larger is not None
+
+    def size(v: np.ndarray) -> float:
+        return float(np.sqrt(((v - v.mean(0)) ** 2).sum(1).mean()))
+
+    ratio = size(np.asarray(larger.vertices_cam)) / size(np.asarray(exact.vertices_cam))
+    assert ratio == pytest.approx(1.1, abs=0.02)
+    # Depth scales alike, so the larger body still lies on the person's pixels.
+    pelvis = np.asarray(larger.keypoints_cam)[0], np.asarray(exact.keypoints_cam)[0]
+    assert pelvis[0][2] / pelvis[1][2] == pytest.approx(1.1, abs=0.03)
+    valid = np.asarray(exact.keypoints_valid)
+    assert valid.sum() >= 17
+    assert np.array_equal(valid, np.asarray(larger.keypoints_valid))
+    assert np.allclose(larger.keypoints_xy[valid], exact.keypoints_xy[valid])

@@ -22,7 +22,10 @@ synthetic people:
 - 3D ("world") landmarks with the noise measured on pose2sim per landmark and
   camera axis (:data:`LANDMARK_SIGMA_3D`, a fraction of the landmarks' extent),
   against the landmarks its calibrated cameras triangulate, following the 2D
-  error as measured there (:data:`CORRELATION_2D_3D`);
+  error as measured there (:data:`CORRELATION_2D_3D`), and scaled by the
+  person's size error, shared by its views (``NoiseModel.person_size_error``:
+  MediaPipe's world landmarks are in metres, but of the body it takes the
+  person for);
 - :func:`~colmap_vc.estimators.fit.fit_body`, then
   :func:`~colmap_vc.estimators.prior.prior_from_fit` with the predicted mask.
 
@@ -32,6 +35,7 @@ estimator does.
 
 from __future__ import annotations
 
+import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -183,15 +187,22 @@ def fitted_person(
     mask: np.ndarray,
     confidence: float,
     rng: np.random.Generator,
+    size_error: float = 0.0,
 ) -> PersonPrior | None:
     """The bundled estimator's prior of one person (module doc); None when its
-    fit fails. ``noise_scale`` multiplies the measured landmark noise."""
+    fit fails. ``noise_scale`` multiplies the measured landmark noise;
+    ``size_error`` scales the person's 3D landmarks about the hips (the size
+    error shared by its views, ``noise.person_size_error``)."""
     from ..estimators import body, fit, prior
 
     template = _template(bodies)
     exact = body.landmarks_from_mesh(
         template, view.body_vertices, view.cam_from_body, camera
     )
+    if size_error:
+        exact = dataclasses.replace(
+            exact, points_3d=exact.points_3d * (1.0 + size_error)
+        )
     if turn_prob > 0 and rng.random() < turn_prob:
         exact = _turned(exact)
     landmarks = noisy_landmarks(

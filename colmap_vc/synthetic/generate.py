@@ -28,6 +28,7 @@ import dataclasses
 import json
 import logging
 import time
+from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
@@ -58,13 +59,20 @@ from .gt import (
 from .layout import (
     CameraSpec,
     LayoutOptions,
+    PersonPlacement,
     Preset,
     SceneLayout,
     draw_people,
     instant_image_name,
     make_layout,
 )
-from .noise import NOISE_LEVELS, NoiseLevel, PersonView, predict_person
+from .noise import (
+    NOISE_LEVELS,
+    NoiseLevel,
+    PersonView,
+    person_size_error,
+    predict_person,
+)
 from .render import FIRST_PERSON, RenderedView, World, build_world, render_view
 
 logger = logging.getLogger(__name__)
@@ -232,6 +240,16 @@ class _Detections:
     true_ids: dict[str, list[int]] = field(default_factory=dict)
     dropped: dict[str, dict[int, str]] = field(default_factory=dict)
     num_false: int = 0
+    size_errors: dict[int, float] = field(default_factory=dict)
+    """Each true person's size error at this level, shared by its views."""
+
+
+def _size_errors(
+    level: NoiseLevel, seed: int, people: Sequence[PersonPlacement]
+) -> dict[int, float]:
+    """The size error of every person of the scene at ``level`` (person id: e)."""
+    model = NOISE_LEVELS[level]
+    return {p.person_id: person_size_error(model, seed, p.person_id) for p in people}
 
 
 def _detect(
@@ -269,7 +287,14 @@ def _detect(
     order = rng.permutation(len(kept))
     persons, true_ids = [], []
     for i in order:
-        predicted = predict_person(bodies, kept[i], camera, level, rng)
+        predicted = predict_person(
+            bodies,
+            kept[i],
+            camera,
+            level,
+            rng,
+            size_error=out.size_errors.get(kept[i].person_id, 0.0),
+        )
         if predicted is None:  # the estimator's fit failed: no one reported
             if kept[i].person_id != FALSE_DETECTION:
                 dropped[kept[i].person_id] = "fit failed"
@@ -408,9 +433,14 @@ def generate(
 
     gt_priors: dict[str, ImagePrior] = {}
     visible: dict[str, list[int]] = {}
-    pred = _Detections()
+    main_level = NoiseLevel(options.noise)
     extra = [NoiseLevel(level) for level in options.extra_noise]
-    extra_pred = {level: _Detections() for level in extra}
+    size_errors = {
+        level: _size_errors(level, options.seed, scene.people)
+        for level in [main_level, *extra]
+    }
+    pred = _Detections(size_errors=size_errors[main_level])
+    extra_pred = {level: _Detections(size_errors=size_errors[level]) for level in extra}
     extra_rng = {
         level: np.random.default_rng(
             [options.seed, 1000 + list(NoiseLevel).index(level)]
@@ -459,7 +489,7 @@ def generate(
                 instant,
                 spec.name,
                 camera,
-                NoiseLevel(options.noise),
+                main_level,
                 rng_k,
                 options.with_ids,
             )
@@ -524,7 +554,7 @@ def generate(
     timings["total"] = time.perf_counter() - t0
 
     (out_dir / "scene.json").write_text(
-        json.dumps(_scene_spec(preset, scene, bodies, options), indent=1)
+        json.dumps(_scene_spec(preset, scene, bodies, options, size_errors), indent=1)
     )
     summary = SynthSummary(
         out_dir=out_dir,
@@ -556,8 +586,11 @@ def _scene_spec(
     scene: SceneLayout,
     bodies: body_lib.BodyModel,
     options: SynthOptions,
+    size_errors: dict[NoiseLevel, dict[int, float]],
 ) -> dict:
-    """scene.json: what was generated (every image and person), from which options."""
+    """scene.json: what was generated (every image and person), from which options;
+    the noise model of every level whose priors were made (``noise_models``) and
+    each person's size error at each (``size_error``)."""
     num_people = len(scene.people) // options.num_instants
     people = []
     for p in scene.people:
@@ -568,6 +601,10 @@ def _scene_spec(
             "position_xy": p.position_xy.tolist(),
             "yaw_deg": float(np.degrees(p.yaw_rad)),
             "bystander": p.bystander,
+            "size_error": {
+                level.value: errors[p.person_id]
+                for level, errors in size_errors.items()
+            },
         }
         if options.num_instants > 1:
             person["instant"] = p.person_id // num_people
@@ -580,6 +617,9 @@ def _scene_spec(
             for k, v in asdict(options).items()
         },
         "noise_model": asdict(NOISE_LEVELS[NoiseLevel(options.noise)]),
+        "noise_models": {
+            level.value: asdict(NOISE_LEVELS[level]) for level in size_errors
+        },
         "detection_model": asdict(DETECTION_LEVELS[NoiseLevel(options.noise)]),
         "backdrop": scene.backdrop.value,
         "people": people,

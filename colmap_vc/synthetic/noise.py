@@ -6,8 +6,9 @@ mimics a mesh-recovery network (HMR/EFT-like) and a dense-correspondence network
 
 - mesh: another phenotype's proportions (shape error), perturbed joint angles
   (articulation error), a global orientation error about the pelvis, a scale error
-  with the depth scaled alike, then the translation refitted so the mesh's joints
-  project onto the person's 2D joints, plus a small 2D offset;
+  (the person's, shared by its views, and the view's) with the depth scaled alike,
+  then the translation refitted so the mesh's joints project onto the person's 2D
+  joints, plus a small 2D offset;
 - dense map: spatially smooth sliding of the surface coordinates, left/right flips
   of whole limbs, front/back flips of body parts (the back surface behind a pixel),
   dropped blobs;
@@ -51,7 +52,8 @@ class NoiseModel:
     rotation_deg: tuple[float, float]
     """Global orientation error: rotation angle about a random axis, degrees."""
     scale_error: tuple[float, float]
-    """Relative body-size error (random sign); depth scales alike."""
+    """Relative body-size error of one view (random sign), on top of the person's
+    (``person_size_error``); depth scales alike."""
     shape_blend: tuple[float, float]
     """Weight of another phenotype's rest shape (0: true shape, 1: the other)."""
     joint_sigma_deg: float
@@ -80,6 +82,10 @@ class NoiseModel:
     """Silhouette: erosion or dilation radius, pixels."""
     confidence: tuple[float, float]
     """Reported confidence range."""
+    person_size_error: tuple[float, float] = (0.0, 0.0)
+    """Relative body-size error shared by every view of one person (random sign,
+    :func:`person_size_error`): a network sees a body's proportions, not its size,
+    so it takes a tall person for an average one in every image alike."""
     fitted: bool = False
     """The bundled estimator's priors instead (:mod:`colmap_vc.synthetic.fitted`):
     noisy BlazePose landmarks, the Anny body fitted to them, the mask ray-cast on
@@ -107,7 +113,8 @@ NOISE_LEVELS: dict[NoiseLevel, NoiseModel] = {
     ),
     NoiseLevel.REALISTIC: NoiseModel(
         rotation_deg=(5.0, 15.0),
-        scale_error=(0.05, 0.15),
+        scale_error=(0.0, 0.05),
+        person_size_error=(0.03, 0.08),
         shape_blend=(0.3, 0.8),
         joint_sigma_deg=6.0,
         offset_px=2.0,
@@ -123,7 +130,8 @@ NOISE_LEVELS: dict[NoiseLevel, NoiseModel] = {
     ),
     NoiseLevel.HARD: NoiseModel(
         rotation_deg=(10.0, 25.0),
-        scale_error=(0.10, 0.25),
+        scale_error=(0.0, 0.10),
+        person_size_error=(0.05, 0.15),
         shape_blend=(0.6, 1.0),
         joint_sigma_deg=12.0,
         offset_px=5.0,
@@ -142,11 +150,24 @@ NOISE_LEVELS[NoiseLevel.FITTED] = dataclasses.replace(
     NOISE_LEVELS[NoiseLevel.CLEAN],
     mask_jitter_px=1,
     confidence=(0.7, 0.95),
+    person_size_error=NOISE_LEVELS[NoiseLevel.REALISTIC].person_size_error,
     fitted=True,
 )
 """The bundled estimator's priors: the fit itself makes every error (the mesh and
-map fields stay at ``clean``'s zeros), people are masked and scored as at
-``realistic``."""
+map fields stay at ``clean``'s zeros) but the person's size error, which scales
+the 3D landmarks it fits; people are masked and scored as at ``realistic``."""
+
+
+def person_size_error(model: NoiseModel, seed: int, person_id: int) -> float:
+    """The relative size error of every view of one person (``person_size_error``):
+    drawn from the person's own stream (seed, 3000, person_id), so it does not
+    depend on which images see the person, in what order, or on the other people.
+    0 for a false detection (a negative id: its body is drawn at random anyway)."""
+    low, high = model.person_size_error
+    if high <= 0.0 or person_id < 0:
+        return 0.0
+    rng = np.random.default_rng([seed, 3000, person_id])
+    return float(rng.uniform(low, high) * rng.choice([-1.0, 1.0]))
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -204,8 +225,10 @@ def _predict_mesh(
     camera: pycolmap.Camera,
     model: NoiseModel,
     rng: np.random.Generator,
+    size_error: float,
 ) -> FloatArray:
-    """Predicted vertices (V, 3) in the camera frame."""
+    """Predicted vertices (V, 3) in the camera frame; ``size_error`` is the
+    person's, shared by its views."""
     from .bodies import joints, pose_body
 
     num_phenotypes = bodies.rest_vertices.shape[0]
@@ -230,8 +253,10 @@ def _predict_mesh(
     body = pose_body(
         bodies, view.phenotype, view.pose, delta_rotvec=delta, shape_blend=blend
     )
-    # Scale error: the predicted body's height is off by e, and so is its depth.
-    e = rng.uniform(*model.scale_error) * rng.choice([-1.0, 1.0])
+    # Scale error: the predicted body's height is off by e (the person's error and
+    # this view's), and so is its depth.
+    e_view = rng.uniform(*model.scale_error) * rng.choice([-1.0, 1.0])
+    e = (1.0 + size_error) * (1.0 + e_view) - 1.0
     height_true = np.ptp(view.body_vertices[:, 2])
     body = body * (height_true / np.ptp(body[:, 2]) * (1.0 + e))
     verts = _transform(view.cam_from_body, body)
@@ -399,9 +424,12 @@ def predict_person(
     camera: pycolmap.Camera,
     level: NoiseLevel | NoiseModel,
     rng: np.random.Generator,
+    size_error: float = 0.0,
 ) -> PersonPrior | None:
     """The predicted prior of one person in one image at a noise level (None: the
-    ``fitted`` level's fit failed, the estimator reports no one)."""
+    ``fitted`` level's fit failed, the estimator reports no one). ``size_error``:
+    the person's relative size error at that level (:func:`person_size_error`),
+    shared by all its views."""
     model = level if isinstance(level, NoiseModel) else NOISE_LEVELS[NoiseLevel(level)]
     if model.fitted:
         from .fitted import fitted_person
@@ -415,8 +443,9 @@ def predict_person(
             mask=_predict_mask(view, model, rng),
             confidence=float(rng.uniform(*model.confidence)),
             rng=rng,
+            size_error=size_error,
         )
-    verts = _predict_mesh(bodies, view, camera, model, rng)
+    verts = _predict_mesh(bodies, view, camera, model, rng, size_error)
     turned = model.turn_prob > 0 and rng.random() < model.turn_prob
     if turned:
         verts = _turned(bodies, view, verts)
