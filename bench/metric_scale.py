@@ -69,6 +69,18 @@ def scale_info(folder: Path, database_path: Path | None = None) -> dict:
     return info
 
 
+def people_size(scene: Path, level: str) -> float | None:
+    """The mean of 1 + e over the scene's people, e the size error each person's
+    priors share at ``level`` (scene.json's ``size_error``; ``realistic_ids``
+    reads ``realistic``): the ratio a model would have if the people's size error
+    were all there is. None for a scene made before the error was per person."""
+    people = json.loads((scene / "scene.json").read_text())["people"]
+    errors = [p.get("size_error", {}).get(level.removesuffix("_ids")) for p in people]
+    if not errors or any(e is None for e in errors):
+        return None
+    return float(np.mean([1.0 + e for e in errors]))
+
+
 def coverage(items: list[dict]) -> str:
     """The median uncertainty, and in how many models the truth lies within one
     and two uncertainties of the scale (|log ratio| <= k u)."""
@@ -130,8 +142,9 @@ def main() -> None:
             info = scale_info(folder, db if db.exists() else None)
             ratio = camera_distance_ratio(poses_by_name(rec), gt)
             key = f"{group}, {people} {'person' if people == '1' else 'people'}"
+            size = people_size(scene, level_dir.name)
             rows.setdefault(key, {}).setdefault(level_dir.name, []).append(
-                {"scene": run.name, "ratio": ratio, **info}
+                {"scene": run.name, "ratio": ratio, "people_size": size, **info}
             )
     static = OUT / "static_cameras.json"
     real: dict[str, dict] = {}
@@ -152,8 +165,9 @@ def main() -> None:
     )
     lines = [
         "| scenes | priors | models | median ratio | ratios (one per scene) "
+        "| the people's size (1 + e, one per scene) "
         "| scaled models | median uncertainty | truth within 1 / 2 uncertainties |",
-        "|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for key, levels in rows.items():
         for level, items in levels.items():
@@ -161,14 +175,20 @@ def main() -> None:
             scaled = f"{sum('scale' in it for it in items)}/{len(items)}"
             median = f"{np.median(ratios):.3f}" if ratios else "-"
             listed = " ".join(f"{r:.3f}" for r in ratios) or "-"
+            sizes = [it.get("people_size") for it in items]
+            people = (
+                " ".join(f"{x:.3f}" for x in sizes)
+                if all(x is not None for x in sizes)
+                else "-"
+            )
             lines.append(
-                f"| {key} | {level} | {len(items)} | {median} | {listed} | {scaled} "
-                f"| {coverage(items)} |"
+                f"| {key} | {level} | {len(items)} | {median} | {listed} | {people} "
+                f"| {scaled} | {coverage(items)} |"
             )
     for name, it in real.items():
         ratio = it["ratio"]
         lines.append(
-            f"| {name} | real photos | 1 | {ratio:.3f} | {ratio:.3f} | 1/1 "
+            f"| {name} | real photos | 1 | {ratio:.3f} | {ratio:.3f} | - | 1/1 "
             f"| {coverage([it])} |"
         )
     lines += [
@@ -178,7 +198,10 @@ def main() -> None:
         "`map`) and `bench/static_cameras.py`: per model the median over camera pairs "
         "of the model's distance between two cameras over the true one (1: metres "
         "exactly). *scaled models*: those `map` could scale (it needs triangulated "
-        "keypoints of people with priors). *uncertainty*: the relative standard "
+        "keypoints of people with priors). *the people's size*: the mean of 1 + e "
+        "over the scene's people, e the size error each person's priors share "
+        "(scene.json; docs/synthetic.md), the ratio if that were all. "
+        "*uncertainty*: the relative standard "
         "error `map` reports with the scale (metric_scale.json: the people's shared "
         "size error, 5% per person, and the views' spread); *truth within*: models "
         "whose |log ratio| is at most one and two of it.",
