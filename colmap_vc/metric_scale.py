@@ -20,8 +20,9 @@ On pose2sim_single (one real person, four cameras, five instants) the camera
 distances come out 3.8% short of the calibration, on pose2sim_multi 3.7% long
 (docs/results.md, "Metric scale from the people"). There the views of one person
 agree within about 3% and the people differ by up to 15%: real fits err per
-person, so the scale is as good as the people's average size, and the synthetic
-realistic priors (whose size error is drawn per view) are kinder than real data.
+person, so the scale is as good as the people's average size. The synthetic priors
+err the same way (a size error per person, shared by its views, and a smaller one
+per view: docs/synthetic.md).
 """
 
 from __future__ import annotations
