@@ -26,6 +26,7 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
+from accuracy import LEVELS
 from common import DOCS, OUT, machine, replace_section, write_json
 from evidence import ARMS
 from realdata import SHARED, load_calibration
@@ -35,6 +36,8 @@ from colmap_vc.mapping import MappingOptions
 from colmap_vc.mapping.inputs import read_inputs
 from colmap_vc.mapping.pipeline import people_scale
 from colmap_vc.metric_scale import SCALE_FILE, read_metric_scale
+from colmap_vc.priors import read_priors
+from colmap_vc.synthetic.gt import gt_persons_path, read_gt_persons
 
 ARM = "VC_p_keypoint_BA"
 
@@ -69,16 +72,37 @@ def scale_info(folder: Path, database_path: Path | None = None) -> dict:
     return info
 
 
-def people_size(scene: Path, level: str) -> float | None:
-    """The mean of 1 + e over the scene's people, e the size error each person's
-    priors share at ``level`` (scene.json's ``size_error``; ``realistic_ids``
-    reads ``realistic``): the ratio a model would have if the people's size error
-    were all there is. None for a scene made before the error was per person."""
-    people = json.loads((scene / "scene.json").read_text())["people"]
-    errors = [p.get("size_error", {}).get(level.removesuffix("_ids")) for p in people]
-    if not errors or any(e is None for e in errors):
+def priors_size(scene: Path, level: str) -> float | None:
+    """How far the priors of ``level`` put the people: over every person view of
+    a real person, the median over its keypoints of predicted / true distance from
+    the camera, and the median of those (``realistic_ids`` reads ``realistic``'s
+    priors). The ratio a model would have if the priors' size were all there is:
+    the person's shared size error (scene.json's ``size_error``), and what another
+    body's proportions and the refit add (docs/synthetic.md)."""
+    folder = LEVELS[level.removesuffix("_ids")]
+    persons = gt_persons_path(scene, folder)
+    if not persons.exists():
         return None
-    return float(np.mean([1.0 + e for e in errors]))
+    truth = read_priors(scene / "gt" / "priors")
+    predicted = read_priors(scene / folder)
+    who = read_gt_persons(persons)
+    ratios = []
+    for name, image in predicted.images.items():
+        true_person = {p.person_id: p for p in truth.images[name].persons}
+        for person, true_id in zip(image.persons, who.images[name], strict=True):
+            if true_id not in true_person:  # a false detection
+                continue
+            true = np.asarray(true_person[true_id].keypoints_cam)
+            joints = len(true)  # the fitted level adds surface landmarks after them
+            valid = np.asarray(person.keypoints_valid)[:joints]
+            if not valid.any():
+                continue
+            guess = np.asarray(person.keypoints_cam)[:joints][valid]
+            true = true[valid]
+            ratios.append(
+                np.median(np.linalg.norm(guess, axis=1) / np.linalg.norm(true, axis=1))
+            )
+    return float(np.median(ratios)) if ratios else None
 
 
 def coverage(items: list[dict]) -> str:
@@ -142,9 +166,9 @@ def main() -> None:
             info = scale_info(folder, db if db.exists() else None)
             ratio = camera_distance_ratio(poses_by_name(rec), gt)
             key = f"{group}, {people} {'person' if people == '1' else 'people'}"
-            size = people_size(scene, level_dir.name)
+            size = priors_size(scene, level_dir.name)
             rows.setdefault(key, {}).setdefault(level_dir.name, []).append(
-                {"scene": run.name, "ratio": ratio, "people_size": size, **info}
+                {"scene": run.name, "ratio": ratio, "priors_size": size, **info}
             )
     static = OUT / "static_cameras.json"
     real: dict[str, dict] = {}
@@ -165,7 +189,7 @@ def main() -> None:
     )
     lines = [
         "| scenes | priors | models | median ratio | ratios (one per scene) "
-        "| the people's size (1 + e, one per scene) "
+        "| the priors' size (one per scene) "
         "| scaled models | median uncertainty | truth within 1 / 2 uncertainties |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
@@ -175,7 +199,7 @@ def main() -> None:
             scaled = f"{sum('scale' in it for it in items)}/{len(items)}"
             median = f"{np.median(ratios):.3f}" if ratios else "-"
             listed = " ".join(f"{r:.3f}" for r in ratios) or "-"
-            sizes = [it.get("people_size") for it in items]
+            sizes = [it.get("priors_size") for it in items]
             people = (
                 " ".join(f"{x:.3f}" for x in sizes)
                 if all(x is not None for x in sizes)
@@ -198,9 +222,11 @@ def main() -> None:
         "`map`) and `bench/static_cameras.py`: per model the median over camera pairs "
         "of the model's distance between two cameras over the true one (1: metres "
         "exactly). *scaled models*: those `map` could scale (it needs triangulated "
-        "keypoints of people with priors). *the people's size*: the mean of 1 + e "
-        "over the scene's people, e the size error each person's priors share "
-        "(scene.json; docs/synthetic.md), the ratio if that were all. "
+        "keypoints of people with priors). *the priors' size*: the median over the "
+        "real people's views of their keypoints' predicted / true distance from the "
+        "camera (a size error per person shared by its views, one per view, and "
+        "what another body's proportions add: docs/synthetic.md), the ratio if that "
+        "were all. "
         "*uncertainty*: the relative standard "
         "error `map` reports with the scale (metric_scale.json: the people's shared "
         "size error, 5% per person, and the views' spread); *truth within*: models "
