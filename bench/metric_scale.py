@@ -35,7 +35,7 @@ from colmap_vc.evaluation import camera_distance_ratio, poses_by_name
 from colmap_vc.mapping import MappingOptions
 from colmap_vc.mapping.inputs import read_inputs
 from colmap_vc.mapping.pipeline import people_scale
-from colmap_vc.metric_scale import SCALE_FILE, read_metric_scale
+from colmap_vc.metric_scale import read_metric_scale
 from colmap_vc.priors import read_priors
 from colmap_vc.synthetic.gt import gt_persons_path, read_gt_persons
 
@@ -52,16 +52,16 @@ def _largest(sparse: Path) -> tuple[pycolmap.Reconstruction, Path] | None:
 
 
 def scale_info(folder: Path, database_path: Path | None = None) -> dict:
-    """What `map` wrote beside a model (metric_scale.json). Where the model
-    predates the scale's uncertainty, it is estimated again on the model (in
-    metres already: the same ratios about 1) with ``database_path``'s priors, or
-    without it from the file's spread and people (``read_metric_scale``)."""
+    """What `map` wrote beside a model (metric_scale.json), with the uncertainty
+    of today's code: estimated again on the model (in metres already: the same
+    ratios about 1) with ``database_path``'s priors (and the static cameras
+    augment recorded there), or without it, where the file has none, from its
+    spread and people (``read_metric_scale``)."""
     scale = read_metric_scale(folder)
     if scale is None:
         return {}
     info = asdict(scale)
-    written = json.loads((folder / SCALE_FILE).read_text())
-    if database_path is not None and "uncertainty" not in written:
+    if database_path is not None:
         again = people_scale(
             pycolmap.Reconstruction(folder),
             read_inputs(database_path, MappingOptions(), None),

@@ -45,18 +45,27 @@ logger = logging.getLogger(__name__)
 SCALE_FILE = "metric_scale.json"
 """Written next to the model: the scale applied, its spread and its uncertainty."""
 
-PERSON_SIZE_SD = 0.05
+PERSON_SIZE_SD = 0.07
 """Relative standard deviation of a fitted person's size, shared by every view of
-that person. A fit from the image sees a body's proportions, not its size: adult
-stature varies with a standard deviation of about 7 cm within each sex around
-1.62-1.76 m, 4-4.5%, and about 5.5% over both. Measured against the calibration:
-pose2sim_single's man comes out 1-7% small in the 30 per-instant models (0.93-0.99),
-the pose2sim videos' static cameras 4% small (one man) and 4% large (the man and
-the avatar). With 5%, the truth is within one uncertainty in 18 and within two
-in all of pose2sim_single's 30 per-instant models (`map`, six seeds), 22 and 30
-of pose2sim_multi's; the views' spread alone (0.6-4% on pose2sim_single) put the
-truth within two of it in 8 of that dataset's 60 models, `map` and `map --gba`
-(docs/results.md, "Metric scale per instant, over seeds")."""
+that person: two parts in quadrature.
+
+- The person against the body the fit assumes: a fit from the image sees a
+  body's proportions, not its size, and adult stature varies with a standard
+  deviation of about 7 cm within each sex around 1.62-1.76 m, 4-4.5%, and
+  about 5.5% over both.
+- The fit's own error that repeats over a person's views (another body's
+  proportions, the pose): 4.5% rms over the 17 people of the accuracy bench's
+  synthetic `fitted` domes and dense scenes, beyond the size drawn for them
+  (4.1% with `realistic` priors; docs/real-data.md, "Metric scale").
+
+sqrt(5.5^2 + 4.5^2) = 7.1%. Against the calibration, with the model's poses
+replaced by the calibrated ones, the bundled estimator's people come out: the
+pose2sim_single man 0.92-1.01 per instant (median 0.95), in pose2sim_multi one
+person 1.10-1.16 and the other 0.92-0.99: 9% rms over the two. At 5% (stature
+alone) the truth was within one uncertainty in 18 of pose2sim_single's 30
+per-instant models and 22 of pose2sim_multi's, within two in all; on the
+synthetic scenes with `realistic` and `fitted` priors within one in 12 and
+two in 16 of 24 (docs/results.md, "Metric scale")."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
