@@ -229,7 +229,8 @@ def main() -> None:
         "were all. "
         "*uncertainty*: the relative standard "
         "error `map` reports with the scale (metric_scale.json: the people's shared "
-        "size error, 5% per person, and the views' spread); *truth within*: models "
+        "size error, 7% per person, and the views' spread; estimated again on every "
+        "model with today's code); *truth within*: models "
         "whose |log ratio| is at most one and two of it.",
     ]
     replace_section(
