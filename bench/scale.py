@@ -43,7 +43,16 @@ import time
 from pathlib import Path
 
 import numpy as np
-from common import DOCS, OUT, ROOT, machine, replace_section, setup_logging, write_json
+from common import (
+    DOCS,
+    OUT,
+    ROOT,
+    machine,
+    replace_section,
+    scene_is_current,
+    setup_logging,
+    write_json,
+)
 
 logger = logging.getLogger("bench.scale")
 
@@ -56,7 +65,7 @@ def scene_dir(num_cameras: int, num_instants: int, seed: int) -> Path:
 
     name = f"scale_dome{num_cameras}x{num_instants}_s{seed}"
     scene = OUT / "scenes" / name
-    if not (scene / "database.db").exists():
+    if not ((scene / "database.db").exists() and scene_is_current(scene)):
         t0 = time.perf_counter()
         generate(
             "dome",
