@@ -61,11 +61,12 @@ that person: two parts in quadrature.
 sqrt(5.5^2 + 4.5^2) = 7.1%. Against the calibration, with the model's poses
 replaced by the calibrated ones, the bundled estimator's people come out: the
 pose2sim_single man 0.92-1.01 per instant (median 0.95), in pose2sim_multi one
-person 1.10-1.16 and the other 0.92-0.99: 9% rms over the two. At 5% (stature
-alone) the truth was within one uncertainty in 18 of pose2sim_single's 30
-per-instant models and 22 of pose2sim_multi's, within two in all; on the
-synthetic scenes with `realistic` and `fitted` priors within one in 12 and
-two in 16 of 24 (docs/results.md, "Metric scale")."""
+person 1.10-1.16 and the other 0.92-0.99: 8% rms over the two (their medians
+1.11 and 0.97). With 7% the truth is within one uncertainty in 25 of
+pose2sim_single's 30 per-instant models and 24 of pose2sim_multi's (18 and 22
+at 5%, stature alone), within two in all; on the synthetic scenes with
+`realistic` and `fitted` priors within one in 13 and two in 20 of 24 (12 and 16
+at 5%; docs/results.md, "Metric scale")."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
