@@ -5,7 +5,8 @@ under bench/out/runs/accuracy) and the static-camera models of
 `bench/static_cameras.py`, and compares camera distances with the ground truth:
 the median over camera pairs of model distance / true distance (1 = right size),
 and how often the truth lies within one and two of the uncertainty `map` reports
-with its scale (models written before it get it estimated again).
+with its scale (estimated again on every model with today's code, and the
+priors' own size beside it on the synthetic scenes).
 ``--instants`` reads the per-instant models of `bench/evidence.py --seeds` instead
 (`map` and `map --gba` on each seed's databases: pose2sim's instants, 4 images
 each) and writes bench/out/metric_scale_instants.json and the "scale-instants"
@@ -200,13 +201,13 @@ def main() -> None:
             median = f"{np.median(ratios):.3f}" if ratios else "-"
             listed = " ".join(f"{r:.3f}" for r in ratios) or "-"
             sizes = [it.get("priors_size") for it in items]
-            people = (
+            priors = (
                 " ".join(f"{x:.3f}" for x in sizes)
                 if all(x is not None for x in sizes)
                 else "-"
             )
             lines.append(
-                f"| {key} | {level} | {len(items)} | {median} | {listed} | {people} "
+                f"| {key} | {level} | {len(items)} | {median} | {listed} | {priors} "
                 f"| {scaled} | {coverage(items)} |"
             )
     for name, it in real.items():

@@ -101,9 +101,14 @@ def within_person_spread(values: FloatArray, person: IndexArray) -> float:
     counts = np.bincount(which)
     several = counts[which] >= 2
     if not several.any():
-        return float(1.4826 * np.median(np.abs(values / np.median(values) - 1.0)))
-    dev = values[several] / medians[which[several]] - 1.0
-    return float(1.4826 * np.median(np.abs(dev)))
+        return relative_spread(values, float(np.median(values)))
+    return relative_spread(values[several], medians[which[several]])
+
+
+def relative_spread(values: FloatArray, centre: FloatArray | float) -> float:
+    """Robust relative standard deviation of ``values`` about ``centre`` (1.4826
+    times the median absolute relative deviation)."""
+    return float(1.4826 * np.median(np.abs(values / centre - 1.0)))
 
 
 def estimate_metric_scale(
@@ -181,7 +186,7 @@ def estimate_metric_scale(
         return None
     values = np.array(list(ratios.values()))
     scale = hodges_lehmann(values)
-    spread = float(1.4826 * np.median(np.abs(values / scale - 1.0)))
+    spread = relative_spread(values, scale)
     person = np.array([ident for _, ident in ratios], dtype=np.int64)
     people, counts = np.unique(person, return_counts=True)
     return MetricScale(
