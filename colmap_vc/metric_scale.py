@@ -29,16 +29,17 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import pycolmap
+from scipy.spatial.transform import Rotation
 
 from . import database
-from .keypoint_tracks import keypoint_tracks, triangulate_tracks
-from .structs import FloatArray, IndexArray, PersonPrior, ScenePriors
+from .keypoint_tracks import KeypointTracks, keypoint_tracks, triangulate_tracks
+from .structs import BoolArray, FloatArray, IndexArray, PersonPrior, ScenePriors
 
 logger = logging.getLogger(__name__)
 
@@ -68,6 +69,16 @@ at 5%, stature alone), within two in all; on the synthetic scenes with
 `realistic` and `fitted` priors within one in 13 and two in 20 of 24 (12 and 16
 at 5%; docs/results.md, "Metric scale")."""
 
+TWO_VIEW_POSE_SD_DEG = 3.8
+"""Standard deviation, per degree of freedom, of the relative pose of two images
+that only their people place (three of rotation, two of the baseline's
+direction). pose2sim's two-camera models of one instant (57 of them, `bench/subsets.py`)
+have a median pair error of 5.9 deg; the median length of a 3D Gaussian vector
+is 1.54 standard deviations. A two-view model's depths, and so its scale, follow
+its relative pose, by more the narrower the baseline
+(:func:`relative_pose_uncertainty`); with more images, or with classic matches
+placing both, the poses are held better and this term is left out."""
+
 
 @dataclass(frozen=True, kw_only=True, slots=True)
 class MetricScale:
@@ -77,7 +88,10 @@ class MetricScale:
     spread: float  # relative robust std of the per-(image, person) ratios
     num_person_views: int  # (image, person) ratios the median is taken over
     num_people: int  # distinct identities among them
-    uncertainty: float  # relative standard error of scale (scale_uncertainty)
+    uncertainty: float  # relative standard error of scale: the people's size
+    # (scale_uncertainty) and the relative pose's part, in quadrature
+    relative_pose: float = 0.0  # the relative pose's part (two images placed by
+    # their people alone; 0 otherwise): relative_pose_uncertainty
 
 
 def scale_uncertainty(spread: float, num_person_views: int, num_people: float) -> float:
@@ -118,6 +132,7 @@ def estimate_metric_scale(
     *,
     min_track_length: int = 3,
     instant_of: Mapping[tuple[str, int], str] | None = None,
+    relative_pose_sd_deg: float | None = None,
 ) -> MetricScale | None:
     """Scale of ``rec`` in metres from its people's keypoints (module doc).
 
@@ -129,7 +144,9 @@ def estimate_metric_scale(
     each (image name, index) of a merged prior person) tells the uncertainty
     which people stood at one instant: those are different people, while the
     people of different instants may be the same one (their size errors then
-    do not average out).
+    do not average out). ``relative_pose_sd_deg`` (a two-image model placed by
+    its people alone: :data:`TWO_VIEW_POSE_SD_DEG`) adds the relative pose's
+    part to the uncertainty.
     """
     database_path = Path(database_path)
     views = database.read_views(database_path)
@@ -151,22 +168,68 @@ def estimate_metric_scale(
     good = (counts[tracks.track] >= min_track_length) & np.isfinite(
         X[tracks.track]
     ).all(axis=1)
-    ratios: dict[tuple[int, int], float] = {}
-    instants: dict[int, str] = {}  # identity -> its instant ("": one instant)
+    person_views = _person_views(tracks, good, priors, name_of, offset)
+    ratios = _ratios(rec, tracks, X, person_views)
+    if not ratios:
+        return None
+    instants = {  # identity -> its instant ("": one instant)
+        ident: (instant_of or {}).get((name_of[image_id], k), "")
+        for (image_id, ident), (_, _, k) in person_views.items()
+        if (image_id, ident) in ratios
+    }
+    values = np.array(list(ratios.values()))
+    scale = hodges_lehmann(values)
+    spread = relative_spread(values, scale)
+    person = np.array([ident for _, ident in ratios], dtype=np.int64)
+    people, counts = np.unique(person, return_counts=True)
+    sizes = scale_uncertainty(
+        within_person_spread(values, person),
+        len(values),
+        effective_people(counts, [instants[k] for k in people.tolist()]),
+    )
+    pose = 0.0
+    if relative_pose_sd_deg is not None and len(registered) == 2:
+
+        def scale_of(model: pycolmap.Reconstruction) -> float:
+            again = _ratios(
+                model, tracks, triangulate_tracks(model, tracks)[0], person_views
+            )
+            return hodges_lehmann(np.array(list(again.values()))) if again else np.nan
+
+        pose = relative_pose_uncertainty(rec, scale_of, relative_pose_sd_deg)
+    return MetricScale(
+        scale=scale,
+        spread=spread,
+        num_person_views=len(values),
+        num_people=len(counts),
+        uncertainty=float(np.hypot(sizes, pose)),
+        relative_pose=pose,
+    )
+
+
+def _person_views(
+    tracks: KeypointTracks,
+    good: BoolArray,
+    priors: ScenePriors,
+    name_of: Mapping[int, str],
+    offset: int,
+) -> dict[tuple[int, int], tuple[IndexArray, FloatArray, int]]:
+    """Per (image id, identity) with a prior person: the ``good`` observations of
+    its keypoints that the prior places (indices into ``tracks``), the prior's
+    distance of each from the camera (metres), and the prior person's index."""
+    assert tracks.keys is not None
+    out = {}
     for image_id in np.unique(tracks.image_id[good]):  # loop over images
-        sel = good & (tracks.image_id == image_id)
         name = name_of[int(image_id)]
         if name not in priors.images:
             continue
-        T = rec.image(int(image_id)).cam_from_world().matrix()
-        d_model = np.linalg.norm(X[tracks.track[sel]] @ T[:, :3].T + T[:, 3], axis=1)
-        keys = tracks.keys[tracks.track[sel]]
-        xy = tracks.xy_img[sel]
+        obs = np.flatnonzero(good & (tracks.image_id == image_id))
+        keys = tracks.keys[tracks.track[obs]]
         persons = priors.images[name].persons
         for ident in np.unique(keys[:, 0]):  # loop over the image's people
             rows = keys[:, 0] == ident
             j = keys[rows, 1] - offset
-            k = _prior_person(persons, j, xy[rows])
+            k = _prior_person(persons, j, tracks.xy_img[obs[rows]])
             if k is None:
                 continue
             p = persons[k]
@@ -176,30 +239,72 @@ def estimate_metric_scale(
                 if p.keypoints_valid is not None
                 else np.ones(len(j), bool)
             )
-            if not valid.any():
-                continue
-            d_prior = np.linalg.norm(p.keypoints_cam[j[valid]], axis=1)
-            d = d_model[rows][valid]
-            ratios[(int(image_id), int(ident))] = float(np.median(d_prior / d))
-            instants[int(ident)] = (instant_of or {}).get((name, k), "")
-    if not ratios:
-        return None
-    values = np.array(list(ratios.values()))
-    scale = hodges_lehmann(values)
-    spread = relative_spread(values, scale)
-    person = np.array([ident for _, ident in ratios], dtype=np.int64)
-    people, counts = np.unique(person, return_counts=True)
-    return MetricScale(
-        scale=scale,
-        spread=spread,
-        num_person_views=len(values),
-        num_people=len(counts),
-        uncertainty=scale_uncertainty(
-            within_person_spread(values, person),
-            len(values),
-            effective_people(counts, [instants[k] for k in people.tolist()]),
-        ),
+            if valid.any():
+                d_prior = np.linalg.norm(p.keypoints_cam[j[valid]], axis=1)
+                out[(int(image_id), int(ident))] = (obs[rows][valid], d_prior, k)
+    return out
+
+
+def _ratios(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    X: FloatArray,
+    person_views: Mapping[tuple[int, int], tuple[IndexArray, FloatArray, int]],
+) -> dict[tuple[int, int], float]:
+    """Per (image id, identity): the median over its keypoints of the prior's
+    distance from the camera over the model's (``X``: the tracks' points)."""
+    ratios = {}
+    for (image_id, ident), (obs, d_prior, _) in person_views.items():
+        T = rec.image(image_id).cam_from_world().matrix()
+        d = np.linalg.norm(X[tracks.track[obs]] @ T[:, :3].T + T[:, 3], axis=1)
+        ok = np.isfinite(d)
+        if ok.any():
+            ratios[(image_id, ident)] = float(np.median(d_prior[ok] / d[ok]))
+    return ratios
+
+
+def relative_pose_uncertainty(
+    rec: pycolmap.Reconstruction,
+    scale_of: Callable[[pycolmap.Reconstruction], float],
+    sd_deg: float,
+) -> float:
+    """Relative standard error of a two-image model's scale from its relative
+    pose: ``scale_of`` (the scale a model gives) on copies of ``rec`` whose second
+    image (by name) is turned by +-``sd_deg`` about each of its axes, or moved by
+    as much about the first camera in the two directions across the baseline;
+    the central differences, one per degree of freedom, in quadrature. A
+    degree of freedom whose copy gives no scale counts as nothing."""
+    first, second = sorted(
+        (i for i, im in rec.images.items() if im.has_pose),
+        key=lambda i: rec.image(i).name,
     )
+    T1 = rec.image(first).cam_from_world().matrix()
+    T2 = rec.image(second).cam_from_world().matrix()
+    c1 = -T1[:, :3].T @ T1[:, 3]
+    c2 = -T2[:, :3].T @ T2[:, 3]
+    baseline = c2 - c1
+    # Two directions across the baseline, from the second camera's axes.
+    across = np.linalg.svd(baseline[None, :] / np.linalg.norm(baseline))[2][1:]
+    step = np.radians(sd_deg)
+    poses = []  # (R, centre) of the second image, in pairs +- step
+    for axis in np.eye(3):  # turned about its own axes (camera frame)
+        for sign in (1.0, -1.0):
+            R = Rotation.from_rotvec(sign * step * axis).as_matrix() @ T2[:, :3]
+            poses.append((R, c2))
+    for axis in across:  # moved about the first camera, across the baseline
+        for sign in (1.0, -1.0):
+            turn = Rotation.from_rotvec(sign * step * axis).as_matrix()
+            poses.append((T2[:, :3], c1 + turn @ baseline))
+    base = scale_of(rec)
+    scales = []
+    for R, c in poses:  # loop over 10 copies
+        copy = pycolmap.Reconstruction(rec)
+        copy.frame(copy.image(second).frame_id).rig_from_world = pycolmap.Rigid3d(
+            pycolmap.Rotation3d(R), -R @ c
+        )
+        scales.append(scale_of(copy))
+    ds = (np.array(scales[0::2]) - np.array(scales[1::2])) / (2.0 * base)
+    return float(np.sqrt(np.nansum(ds**2)))
 
 
 def effective_people(counts: IndexArray, instants: Sequence[str]) -> float:

@@ -356,9 +356,14 @@ def _scale_text(model_path: Path | None) -> str:
     if scale is None:
         return "arbitrary (no metric_scale.json beside the model)"
     people = "person" if scale.num_people == 1 else "people"
+    pose = (
+        f", the relative pose +-{100 * scale.relative_pose:.1f}%"
+        if scale.relative_pose
+        else ""
+    )
     return (
         f"metres, from the people's size: +-{100 * scale.uncertainty:.1f}% "
-        f"({scale.num_people} {people})"
+        f"({scale.num_people} {people}{pose})"
     )
 
 

@@ -63,7 +63,7 @@ def test_augmented_dome_registers_every_image_accurately(
     # Its uncertainty is the people's shared size error (two people), not the
     # views' agreement: it covers the truth without claiming the views' 2%.
     scale = json.loads((summary.model_dir / "metric_scale.json").read_text())
-    assert scale["num_people"] == 2
+    assert scale["num_people"] == 2 and scale["relative_pose"] == 0.0
     assert scale["uncertainty"] >= PERSON_SIZE_SD / np.sqrt(2) > scale["spread"]
     assert abs(ratio - 1.0) < 2 * scale["uncertainty"]
     assert summary.model_dir == tmp_path / "sparse" / "0"
@@ -721,6 +721,13 @@ def test_two_images_placed_by_people_alone_come_with_a_warning(
     )
     assert summary.num_registered == 2
     assert "two images placed by their people alone" in caplog.text
+    # The scale's uncertainty holds the relative pose's part, written beside it.
+    scale = summary.metric_scale
+    assert scale is not None and 0.0 < scale.relative_pose < scale.uncertainty
+    people_part = scale.uncertainty**2 - scale.relative_pose**2
+    assert people_part >= PERSON_SIZE_SD**2 / scale.num_people - 1e-12
+    written = json.loads((summary.model_dir / "metric_scale.json").read_text())
+    assert written["relative_pose"] == pytest.approx(scale.relative_pose)
 
 
 def test_colmaps_own_log_lines_only_with_debug_logging(

@@ -6,6 +6,7 @@ import json
 from pathlib import Path
 
 import numpy as np
+import pycolmap
 import pytest
 
 from colmap_vc.metric_scale import (
@@ -13,6 +14,7 @@ from colmap_vc.metric_scale import (
     effective_people,
     hodges_lehmann,
     read_metric_scale,
+    relative_pose_uncertainty,
     scale_uncertainty,
     within_person_spread,
 )
@@ -111,3 +113,93 @@ def test_a_broken_scale_file_names_itself(tmp_path: Path) -> None:
     (tmp_path / "metric_scale.json").write_text("{not json")
     with pytest.raises(ValueError, match=r"metric_scale\.json is not a metric scale"):
         read_metric_scale(tmp_path)
+
+
+def _pair(angle_deg: float, first_id: int = 1) -> pycolmap.Reconstruction:
+    """Two cameras 4 m from the origin, ``angle_deg`` apart about it, looking at
+    it; image a.jpg gets id ``first_id``, b.jpg the other."""
+    rec = pycolmap.Reconstruction()
+    rec.add_camera_with_trivial_rig(
+        pycolmap.Camera(
+            camera_id=1,
+            model="PINHOLE",
+            width=640,
+            height=480,
+            params=[500, 500, 320, 240],
+        )
+    )
+    for k, (name, az) in enumerate((("a.jpg", 0.0), ("b.jpg", angle_deg))):
+        a = np.radians(az)
+        centre = 4.0 * np.array([np.sin(a), 0.0, -np.cos(a)])
+        z = -centre / np.linalg.norm(centre)  # looks at the origin
+        x = np.cross([0.0, 1.0, 0.0], z)
+        R = np.stack([x, np.cross(z, x), z])
+        image_id = first_id if k == 0 else 3 - first_id
+        rec.add_image_with_trivial_frame(
+            pycolmap.Image(name=name, camera_id=1, image_id=image_id),
+            pycolmap.Rigid3d(pycolmap.Rotation3d(R), -R @ centre),
+        )
+    return rec
+
+
+def _scale_of_truth(rec: pycolmap.Reconstruction):
+    """A scale from the pair: the true depths of a person-sized cloud over the
+    depths the model's poses triangulate from its true pixels (1 at the truth)."""
+    points = np.random.default_rng(0).uniform(
+        [-0.3, -0.9, -0.2], [0.3, 0.9, 0.2], (40, 3)
+    )
+    ids = sorted(rec.reg_image_ids())
+    camera = rec.camera(1)
+    truth = {i: rec.image(i).cam_from_world().matrix() for i in ids}
+    pixels = {
+        i: camera.img_from_cam(points @ T[:, :3].T + T[:, 3]) for i, T in truth.items()
+    }
+    depth = {
+        i: np.linalg.norm(points @ T[:, :3].T + T[:, 3], axis=1)
+        for i, T in truth.items()
+    }
+
+    def scale_of(model: pycolmap.Reconstruction) -> float:
+        Ts = {i: model.image(i).cam_from_world().matrix() for i in ids}
+        rays = {
+            i: np.c_[camera.cam_from_img(pixels[i]), np.ones(len(points))] for i in ids
+        }
+        X = []
+        for n in range(len(points)):  # loop over 40 points: DLT of two views
+            rows = []
+            for i in ids:
+                P = Ts[i]
+                u, v = rays[i][n, :2]
+                rows += [u * P[2] - P[0], v * P[2] - P[1]]
+            h = np.linalg.svd(np.array(rows))[2][-1]
+            X.append(h[:3] / h[3])
+        X = np.array(X)
+        ratios = [
+            depth[i] / np.linalg.norm(X @ Ts[i][:, :3].T + Ts[i][:, 3], axis=1)
+            for i in ids
+        ]
+        return float(np.median(np.concatenate(ratios)))
+
+    return scale_of
+
+
+def test_a_narrow_pairs_scale_follows_its_relative_pose_more() -> None:
+    """Triangulated depths follow the relative pose by more the narrower the
+    baseline: turning one camera of a 15 deg pair by a few degrees moves its
+    scale several times more than a 90 deg pair's."""
+    narrow, wide = _pair(15.0), _pair(90.0)
+    assert _scale_of_truth(narrow)(narrow) == pytest.approx(1.0, abs=1e-6)
+    u_narrow = relative_pose_uncertainty(narrow, _scale_of_truth(narrow), 3.8)
+    u_wide = relative_pose_uncertainty(wide, _scale_of_truth(wide), 3.8)
+    assert u_wide > 0.01 and u_narrow > 3.0 * u_wide, (u_narrow, u_wide)
+
+
+def test_the_relative_pose_term_follows_names_not_image_ids() -> None:
+    """Which camera is turned is the second by name, whatever ids COLMAP gave."""
+    one, other = _pair(40.0, first_id=1), _pair(40.0, first_id=2)
+    u = relative_pose_uncertainty(one, _scale_of_truth(one), 3.8)
+    assert u == pytest.approx(
+        relative_pose_uncertainty(other, _scale_of_truth(other), 3.8), rel=1e-9
+    )
+    # A scale that does not depend on the poses has no such part.
+    assert relative_pose_uncertainty(one, lambda model: 2.0, 3.8) == 0.0

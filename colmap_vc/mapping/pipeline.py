@@ -30,6 +30,7 @@ from ..camera_check import classic_placed
 from ..gba.ceres import PeopleNoise, bundle_adjust_inplace
 from ..keypoint_ba import keypoint_bundle_adjustment, with_loss_scale
 from ..metric_scale import (
+    TWO_VIEW_POSE_SD_DEG,
     MetricScale,
     apply_metric_scale_inplace,
     estimate_metric_scale,
@@ -261,20 +262,17 @@ def _map_copy(
         if best.num_reg_images() < 2:
             _no_model_left(output_dir, best, left_out)
     scale = _metric_scale(best, inputs, options, priors_path)
-    if best is not None and best.num_reg_images() == 2 and inputs.static is None:
-        placed = classic_placed(
-            best,
-            inputs.num_classic,
-            options.keypoint_ba_options.min_classic_support,
+    if best is not None and _people_only_pair(best, inputs, options):
+        logger.warning(
+            "two images placed by their people alone: expect a relative "
+            "rotation several degrees off, and now and then far off "
+            "(pose2sim, one instant, two cameras: median 5-11 deg, and 9 of "
+            "57 models more than 30 deg off, 3 of them nearly reversed where "
+            "a person's prior was turned front to back, which takes a third "
+            'camera to detect; docs/results.md, "Real photos: fewer cameras, '
+            'fewer instants"); more cameras or instants of static cameras '
+            "pin it down"
         )
-        if len(placed) < 2:
-            logger.warning(
-                "two images placed by their people alone: expect a relative "
-                "rotation several degrees off (pose2sim, one instant, two "
-                'cameras: median 5-11 deg; docs/results.md, "Real photos: fewer '
-                'cameras, fewer instants"); more cameras or instants of static '
-                "cameras pin it down"
-            )
     if best is not None and inputs.static is not None:
         add_static_members_inplace(best, inputs.static, inputs.views)
     if best is not None and (
@@ -375,12 +373,16 @@ def _check_against_meshes(
 
 
 def people_scale(
-    rec: pycolmap.Reconstruction, inputs: MapInputs, priors_path: Path | None
+    rec: pycolmap.Reconstruction,
+    inputs: MapInputs,
+    priors_path: Path | None,
+    options: MappingOptions,
 ) -> MetricScale | None:
     """The metric scale of ``rec`` from its people (not applied; None without
     priors or triangulated keypoints). Static cameras: the instant of each merged
     person goes with it (the people of different instants may be one person,
-    whose size error repeats)."""
+    whose size error repeats). Two images that only their people place: the
+    relative pose's part joins the uncertainty."""
     if inputs.priors is None:
         return None
     instant_of = None
@@ -390,7 +392,32 @@ def people_scale(
             _, groups = merge_priors(raw, inputs.static)
             instant_of = dict(groups)
     return estimate_metric_scale(
-        inputs.database_path, rec, inputs.priors, instant_of=instant_of
+        inputs.database_path,
+        rec,
+        inputs.priors,
+        instant_of=instant_of,
+        relative_pose_sd_deg=(
+            TWO_VIEW_POSE_SD_DEG if _people_only_pair(rec, inputs, options) else None
+        ),
+    )
+
+
+def _people_only_pair(
+    rec: pycolmap.Reconstruction, inputs: MapInputs, options: MappingOptions
+) -> bool:
+    """Two images, one instant, and classic matches do not place both: their
+    relative pose is the people's alone (pose2sim: 5-11 deg median)."""
+    return (
+        rec.num_reg_images() == 2
+        and inputs.static is None
+        and len(
+            classic_placed(
+                rec,
+                inputs.num_classic,
+                options.keypoint_ba_options.min_classic_support,
+            )
+        )
+        < 2
     )
 
 
@@ -403,20 +430,23 @@ def _metric_scale(
     """Scale ``rec`` to metres from the people's size (in place) -> the estimate."""
     if rec is None or not options.metric_scale:
         return None
-    scale = people_scale(rec, inputs, priors_path)
+    scale = people_scale(rec, inputs, priors_path, options)
     if scale is None:
         logger.info("metric scale: no triangulated keypoints: scale arbitrary")
         return None
     apply_metric_scale_inplace(rec, scale)
     logger.info(
         "metric scale: x%.4f to metres, +-%.1f%% (the people's size, %d "
-        "%s; their %d views spread %.1f%%)",
+        "%s; their %d views spread %.1f%%%s)",
         scale.scale,
         100 * scale.uncertainty,
         scale.num_people,
         "person" if scale.num_people == 1 else "people",
         scale.num_person_views,
         100 * scale.spread,
+        f"; the two images' relative pose +-{100 * scale.relative_pose:.1f}%"
+        if scale.relative_pose
+        else "",
     )
     return scale
 
