@@ -142,6 +142,14 @@ def two_camera_models() -> dict[str, list[dict]]:
     return out
 
 
+def subsets_commit() -> str:
+    """The commit `bench/subsets.py` ran at (its JSON), or "-"."""
+    path = OUT / "subsets.json"
+    if not path.exists():
+        return "-"
+    return str(json.loads(path.read_text()).get("machine", {}).get("commit", "-"))
+
+
 def coverage(items: list[dict]) -> str:
     """The median uncertainty, and in how many models the truth lies within one
     and two uncertainties of the scale (|log ratio| <= k u)."""
@@ -282,7 +290,8 @@ def main() -> None:
         "on every model with today's code); *truth within*: models "
         "whose |log ratio| is at most one and two of it. *pose2sim, one instant, "
         "two cameras*: the two-camera models of `bench/subsets.py` that `map` "
-        f"wrote; *within {WRONG_DEG:.0f} deg*: those whose relative pose is "
+        f"wrote (at {subsets_commit()}); *within {WRONG_DEG:.0f} deg*: those whose "
+        "relative pose is "
         "within it of the calibration (a wrong pose's scale is as wrong as the "
         "pose, and `map` warns of such pairs).",
     ]
