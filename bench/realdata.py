@@ -28,6 +28,7 @@ import json
 import logging
 import shutil
 import time
+from collections.abc import Mapping
 from pathlib import Path
 
 import numpy as np
@@ -82,9 +83,13 @@ def load_calibration(
 
 
 def make_database(
-    data: Path, images: list[str], cameras: dict[str, pycolmap.Camera], db: Path
+    data: Path,
+    images: list[str],
+    cameras: Mapping[str, pycolmap.Camera | None],
+    db: Path,
 ) -> None:
-    """SIFT + exhaustive matching with the known intrinsics, images in this order."""
+    """SIFT + exhaustive matching with the known intrinsics, images in this order
+    (an image whose camera is None: COLMAP's guess, as without calibration)."""
     db.parent.mkdir(parents=True, exist_ok=True)
     if db.exists():
         db.unlink()
@@ -92,9 +97,13 @@ def make_database(
     extraction.sift.max_num_features = 8192
     for name in images:
         cam = cameras[name]
-        reader = pycolmap.ImageReaderOptions(
-            camera_model="OPENCV",
-            camera_params=",".join(f"{p:.17g}" for p in cam.params),
+        reader = (
+            pycolmap.ImageReaderOptions()
+            if cam is None
+            else pycolmap.ImageReaderOptions(
+                camera_model="OPENCV",
+                camera_params=",".join(f"{p:.17g}" for p in cam.params),
+            )
         )
         pycolmap.extract_features(
             db,
@@ -115,7 +124,7 @@ def make_database(
 def run_instant(
     data: Path,
     images: list[str],
-    cameras: dict[str, pycolmap.Camera],
+    cameras: Mapping[str, pycolmap.Camera | None],
     gt: dict[str, np.ndarray],
     work: Path,
     priors_dir: Path,

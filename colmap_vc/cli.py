@@ -508,9 +508,7 @@ def _run_map(cmd: Map) -> int:
             f"+-{100 * scale.uncertainty:.1f}% ({people}; metric_scale.json)\n"
         )
     elif options.metric_scale:
-        sys.stdout.write(
-            "  scale arbitrary: no keypoint of a person with priors triangulated\n"
-        )
+        sys.stdout.write(f"  scale arbitrary: {summary.no_scale}\n")
     for name, reason in summary.unregistered.items():
         sys.stdout.write(f"  not registered: {name}: {reason}\n")
     for name, how in summary.re_posed.items():

@@ -342,3 +342,27 @@ def test_pose2sim_one_instant_end_to_end(tmp_path):
     # Measured (bench/pose2sim.py): median 4.7 deg at this instant; cameras 48-151
     # degrees apart, so a mirrored or failed solution is far above this bound.
     assert metrics.median_error_deg < 12.0
+
+
+def test_priors_warn_when_the_database_guessed_the_focal_length(tmp_path, caplog):
+    """A database whose camera has no known focal length (COLMAP's guess, as
+    for frames without EXIF): the meshes' depth follows the guess, and `priors`
+    says so."""
+    pytest.importorskip("ai_edge_litert")
+    from colmap_vc.estimators import run_estimator
+
+    images = tmp_path / "images"
+    images.mkdir()
+    grey = np.random.default_rng(0).integers(0, 255, (96, 128, 3), dtype=np.uint8)
+    cv2.imwrite(str(images / "frame.png"), grey)
+    db = tmp_path / "database.db"
+    pycolmap.extract_features(db, images, device=pycolmap.Device.cpu)
+    caplog.set_level("WARNING", logger="colmap_vc.estimators")
+    summary = run_estimator(
+        images,
+        tmp_path / "priors",
+        database_path=db,
+        options=EstimatorOptions(show_progress=False),
+    )
+    assert summary.num_images == 1
+    assert "1 of 1 images" in caplog.text and "no known focal length" in caplog.text

@@ -730,6 +730,30 @@ def test_two_images_placed_by_people_alone_come_with_a_warning(
     assert written["relative_pose"] == pytest.approx(scale.relative_pose)
 
 
+def test_a_guessed_focal_length_leaves_the_scale_arbitrary_and_says_so(
+    dome_scene, augmented, tmp_path, caplog
+):
+    """Without a known focal length (COLMAP's guess, as for frames without EXIF)
+    the people's depth is as wrong as the guess: `map` warns, and leaves the
+    model at COLMAP's scale rather than claim metres."""
+    db = tmp_path / "guessed.db"
+    shutil.copyfile(augmented, db)
+    with sqlite3.connect(db) as con:
+        con.execute("UPDATE cameras SET prior_focal_length = 0")
+    caplog.set_level("INFO", logger="colmap_vc.mapping.pipeline")
+    _, summary = mapping.run(
+        db,
+        dome_scene / "images",
+        tmp_path / "sparse",
+        mapping.MappingOptions(num_threads=2, show_progress=False),
+    )
+    assert summary.num_registered == 6
+    assert summary.metric_scale is None
+    assert "without a known focal length" in summary.no_scale
+    assert not (summary.model_dir / "metric_scale.json").exists()
+    assert "6 of 6 images have no known focal length" in caplog.text
+
+
 def test_colmaps_own_log_lines_only_with_debug_logging(
     dome_scene, tmp_path, capfd, caplog
 ):

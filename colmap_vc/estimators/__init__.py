@@ -173,6 +173,17 @@ def run_estimator(
             name: views.cameras[int(cid)]
             for name, cid in zip(views.image_names, views.camera_ids, strict=True)
         }
+        guessed = sorted(n for n, c in cameras.items() if not c.has_prior_focal_length)
+        if guessed:
+            logger.warning(
+                "%d of %d images in %s have no known focal length (COLMAP's "
+                "guess, 1.2 max(width, height), e.g. %s): the meshes' depth "
+                "scales with it; give the intrinsics when you extract features",
+                len(guessed),
+                len(cameras),
+                database_path,
+                guessed[0],
+            )
     unreadable: dict[str, str] = {}
     if cameras is None:
         names = _list_images(image_dir)

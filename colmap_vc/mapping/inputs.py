@@ -26,6 +26,21 @@ class MapInputs:
     mirror: dict[int, int] | None  # template track id -> left/right counterpart's
 
     @property
+    def focal_guessed(self) -> tuple[str, ...]:
+        """The images whose camera has no known focal length: COLMAP guessed it
+        (1.2 times the larger side when neither the user nor EXIF gave one)."""
+        known = {
+            i: bool(c.has_prior_focal_length) for i, c in self.views.cameras.items()
+        }
+        return tuple(
+            name
+            for name, camera_id in zip(
+                self.views.image_names, self.views.camera_ids.tolist(), strict=True
+            )
+            if not known[int(camera_id)]
+        )
+
+    @property
     def num_classic(self) -> dict[int, int]:
         """Image id -> number of its classic keypoints (the VCs follow them)."""
         return dict(

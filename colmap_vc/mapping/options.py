@@ -158,6 +158,7 @@ class MappingSummary:
     model_dir: Path | None
     elapsed_s: float
     metric_scale: MetricScale | None = None  # None: the model's scale is arbitrary
+    no_scale: str = ""  # why it is arbitrary ("": metric, or not asked for)
     timings_s: dict[str, float] = field(default_factory=dict)  # seconds per stage
     re_posed: dict[str, str] = field(default_factory=dict)  # name -> how the
     # camera check moved it

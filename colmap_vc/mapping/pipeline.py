@@ -180,6 +180,19 @@ def _map_copy(
     t0 = time.perf_counter()
     inputs = read_inputs(database_path, options, priors_path)
     _check_image_folder(image_dir, inputs.views.image_names)
+    if inputs.focal_guessed and inputs.priors is not None:
+        logger.warning(
+            "%d of %d images have no known focal length (%s; COLMAP guessed it, "
+            "1.2 times the larger side when neither the user nor EXIF gives one): "
+            "their people's depth is proportional to it, so the model stays at "
+            "COLMAP's arbitrary scale, and their poses follow it too "
+            "(pose2sim_single t070 with the guess: 12 deg median pair error, 2 "
+            "with its calibration). Give the intrinsics when you extract features "
+            '(docs/real-data.md, "Photos and a COLMAP database")',
+            len(inputs.focal_guessed),
+            len(inputs.views.image_names),
+            _names(inputs.focal_guessed),
+        )
     timings = {"read": time.perf_counter() - t0}
     lap = time.perf_counter()
     models, best_key = map_images(inputs, image_dir, output_dir, options)
@@ -261,7 +274,7 @@ def _map_copy(
         left_out.update(leave_out_unobserved_inplace(best))
         if best.num_reg_images() < 2:
             _no_model_left(output_dir, best, left_out)
-    scale = _metric_scale(best, inputs, options, priors_path)
+    scale, no_scale = _metric_scale(best, inputs, options, priors_path)
     if best is not None and _people_only_pair(best, inputs, options):
         logger.warning(
             "two images placed by their people alone: expect a relative "
@@ -305,10 +318,17 @@ def _map_copy(
         model_dir=output_dir / str(best_key),
         elapsed_s=time.perf_counter() - t0,
         metric_scale=scale,
+        no_scale=no_scale,
         timings_s=timings,
         re_posed=re_posed,
     )
     return best, summary
+
+
+def _names(names: Sequence[str], shown: int = 3) -> str:
+    """The first ``shown`` names, and how many more."""
+    more = len(names) - shown
+    return ", ".join(names[:shown]) + (f" and {more} more" if more > 0 else "")
 
 
 def _no_model_left(
@@ -426,14 +446,26 @@ def _metric_scale(
     inputs: MapInputs,
     options: MappingOptions,
     priors_path: Path | None,
-) -> MetricScale | None:
-    """Scale ``rec`` to metres from the people's size (in place) -> the estimate."""
+) -> tuple[MetricScale | None, str]:
+    """Scale ``rec`` to metres from the people's size (in place) -> the estimate,
+    or None and why not. Not where a registered image's focal length is a
+    guess: the people's depth follows it (the warning at the start says so)."""
     if rec is None or not options.metric_scale:
-        return None
+        return None, ""
+    registered = {im.name for im in rec.images.values() if im.has_pose}
+    guessed = sorted(registered & set(inputs.focal_guessed))
+    if guessed:
+        why = (
+            f"{len(guessed)} registered image(s) without a known focal length "
+            f"({_names(guessed)}): give the intrinsics for metres"
+        )
+        logger.info("metric scale: %s; scale arbitrary", why)
+        return None, why
     scale = people_scale(rec, inputs, priors_path, options)
     if scale is None:
-        logger.info("metric scale: no triangulated keypoints: scale arbitrary")
-        return None
+        why = "no keypoint of a person with priors triangulated"
+        logger.info("metric scale: %s; scale arbitrary", why)
+        return None, why
     apply_metric_scale_inplace(rec, scale)
     logger.info(
         "metric scale: x%.4f to metres, +-%.1f%% (the people's size, %d "
@@ -448,7 +480,7 @@ def _metric_scale(
         if scale.relative_pose
         else "",
     )
-    return scale
+    return scale, ""
 
 
 def run_incremental(
