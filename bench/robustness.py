@@ -165,7 +165,8 @@ def run_variant(name: str) -> dict:
         logger.info("%s %s: AUC@15 %.1f", name, instant, m.auc["15"])
     out = pooled(metrics)
     out["per_instant"] = [round(m.auc["15"], 1) for m in metrics]
-    h, w = cv2.imread(str(images / names[0])).shape[:2]
+    stored = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION  # as COLMAP reads
+    h, w = cv2.imread(str(images / names[0]), stored).shape[:2]
     out["size"] = [w, h]
     out["seconds"] = time.perf_counter() - t0
     return out
