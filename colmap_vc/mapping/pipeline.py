@@ -186,8 +186,9 @@ def _map_copy(
             "1.2 times the larger side when neither the user nor EXIF gives one): "
             "their people's depth is proportional to it, so the model stays at "
             "COLMAP's arbitrary scale, and their poses follow it too "
-            "(pose2sim_single t070 with the guess: 12 deg median pair error, 2 "
-            "with its calibration). Give the intrinsics when you extract features "
+            "(pose2sim_single, each instant on its own: 12.7 deg median pair "
+            "error with the guess, 2.3 with the calibration). Give the "
+            "intrinsics when you extract features "
             '(docs/real-data.md, "Photos and a COLMAP database")',
             len(inputs.focal_guessed),
             len(inputs.views.image_names),
