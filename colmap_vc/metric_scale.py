@@ -283,7 +283,8 @@ def relative_pose_uncertainty(
     c1 = -T1[:, :3].T @ T1[:, 3]
     c2 = -T2[:, :3].T @ T2[:, 3]
     baseline = c2 - c1
-    # Two directions across the baseline, from the second camera's axes.
+    # Two directions across the baseline: the orthogonal complement of its
+    # direction (the last two right singular vectors).
     across = np.linalg.svd(baseline[None, :] / np.linalg.norm(baseline))[2][1:]
     step = np.radians(sd_deg)
     poses = []  # (R, centre) of the second image, in pairs +- step
