@@ -1,18 +1,19 @@
 """Metric scale: how far `map`'s models in metres are from the ground truth's size.
 
 Reads the models `bench/accuracy.py` left (the default `map`, "VC + keypoint BA",
-under bench/out/runs/accuracy) and the static-camera models of
-`bench/static_cameras.py`, and compares camera distances with the ground truth:
-the median over camera pairs of model distance / true distance (1 = right size),
-and how often the truth lies within one and two of the uncertainty `map` reports
-with its scale (estimated again on every model with today's code, and the
+under bench/out/runs/accuracy), the default `map`'s models of `bench/gba_seeds.py`
+(twelve domes per level, with one person and with three: the accuracy bench has
+three) and the static-camera models of `bench/static_cameras.py`, and compares
+camera distances with the ground truth: the median over camera pairs of model
+distance / true distance (1 = right size), and how often the truth lies within
+one and two of the uncertainty `map` reports with its scale (estimated again on every model with today's code, and the
 priors' own size beside it on the synthetic scenes).
 ``--instants`` reads the per-instant models of `bench/evidence.py --seeds` instead
 (`map` and `map --gba` on each seed's databases: pose2sim's instants, 4 images
 each) and writes bench/out/metric_scale_instants.json and the "scale-instants"
 section.
 
-    .venv/bin/python bench/metric_scale.py   # after bench/accuracy.py
+    .venv/bin/python bench/metric_scale.py   # after accuracy.py and gba_seeds.py
     .venv/bin/python bench/metric_scale.py --instants  # after evidence.py --seeds
 
 Writes bench/out/metric_scale.json and the "scale" section of docs/results.md.
@@ -75,14 +76,15 @@ def scale_info(folder: Path, database_path: Path | None = None) -> dict:
     return info
 
 
-def priors_size(scene: Path, level: str) -> float | None:
+def priors_size(scene: Path, level: str, folder: str | None = None) -> float | None:
     """How far the priors of ``level`` put the people: over every person view of
     a real person, the median over its keypoints of predicted / true distance from
     the camera, and the median of those (``realistic_ids`` reads ``realistic``'s
     priors). The ratio a model would have if the priors' size were all there is:
     the person's shared size error (scene.json's ``size_error``), and what another
-    body's proportions and the refit add (docs/synthetic.md)."""
-    folder = LEVELS[level.removesuffix("_ids")]
+    body's proportions and the refit add (docs/synthetic.md). ``folder``: the
+    scene's folder of those priors, where it is not the accuracy bench's."""
+    folder = folder or LEVELS[level.removesuffix("_ids")]
     persons = gt_persons_path(scene, folder)
     if not persons.exists():
         return None
@@ -142,12 +144,41 @@ def two_camera_models() -> dict[str, list[dict]]:
     return out
 
 
-def subsets_commit() -> str:
-    """The commit `bench/subsets.py` ran at (its JSON), or "-"."""
-    path = OUT / "subsets.json"
+def run_commit(name: str) -> str:
+    """The commit a bench ran at (bench/out/``name``'s JSON), or "-"."""
+    path = OUT / name
     if not path.exists():
         return "-"
     return str(json.loads(path.read_text()).get("machine", {}).get("commit", "-"))
+
+
+def seeds_domes() -> dict[str, dict[str, list[dict]]]:
+    """The default `map`'s models of `bench/gba_seeds.py`'s domes (twelve scene
+    draws per level and number of people, where the accuracy bench has three):
+    the ratio of camera distances to the truth, the priors' size and the scale's
+    uncertainty, estimated again on the model."""
+    rows: dict[str, dict[str, list[dict]]] = {}
+    for run in sorted((OUT / "runs" / "gba_seeds").glob("seeds_dome_p*_s*_*")):
+        scene = OUT / "scenes" / run.name
+        found = _largest(run / "default" / "sparse")
+        if found is None or not (scene / "gt" / "sparse").is_dir():
+            continue
+        _, people, seed, level = run.name.split("_")[1:]
+        gt = poses_by_name(pycolmap.Reconstruction(scene / "gt" / "sparse"))
+        key = f"dome, {people[1:]} {'person' if people == 'p1' else 'people'}"
+        rows.setdefault(key, {}).setdefault(level, []).append(
+            {
+                "scene": run.name,
+                "seed": int(seed[1:]),
+                "ratio": camera_distance_ratio(poses_by_name(found[0]), gt),
+                "priors_size": priors_size(scene, level, "priors"),
+                **scale_info(found[1], run / "default" / "database.db"),
+            }
+        )
+    for levels in rows.values():
+        for items in levels.values():
+            items.sort(key=lambda it: it["seed"])
+    return rows
 
 
 def coverage(items: list[dict]) -> str:
@@ -193,6 +224,34 @@ def per_instant(ds: str, arm: str) -> list[dict]:
     return out
 
 
+def synthetic_rows(
+    rows: dict[str, dict[str, list[dict]]],
+    label: str = "",
+    levels: set[str] | None = None,
+) -> list[str]:
+    """One table row per scene kind and prior level (``levels``: those only)."""
+    lines = []
+    for key, by_level in rows.items():
+        for level, items in by_level.items():
+            if levels is not None and level not in levels:
+                continue
+            ratios = [it["ratio"] for it in items if np.isfinite(it["ratio"])]
+            scaled = f"{sum('scale' in it for it in items)}/{len(items)}"
+            median = f"{np.median(ratios):.3f}" if ratios else "-"
+            listed = " ".join(f"{r:.3f}" for r in ratios) or "-"
+            sizes = [it.get("priors_size") for it in items]
+            priors = (
+                " ".join(f"{x:.3f}" for x in sizes)
+                if all(x is not None for x in sizes)
+                else "-"
+            )
+            lines.append(
+                f"| {key}{label} | {level} | {len(items)} | {median} | {listed} "
+                f"| {priors} | {scaled} | {coverage(items)} |"
+            )
+    return lines
+
+
 def main() -> None:
     rows: dict[str, dict[str, list[dict]]] = {}
     for run in sorted((OUT / "runs" / "accuracy").glob("acc_*")):
@@ -230,9 +289,16 @@ def main() -> None:
                         **scale_info(where / sparse / "0", db if db.exists() else None),
                     }
     pairs = two_camera_models()
+    seeds = seeds_domes()
     write_json(
         "metric_scale.json",
-        {"machine": machine(), "synthetic": rows, "real": real, "pairs": pairs},
+        {
+            "machine": machine(),
+            "synthetic": rows,
+            "synthetic_seeds": seeds,
+            "real": real,
+            "pairs": pairs,
+        },
     )
     lines = [
         "| scenes | priors | models | median ratio | ratios (one per scene) "
@@ -240,22 +306,10 @@ def main() -> None:
         "| scaled models | median uncertainty | truth within 1 / 2 uncertainties |",
         "|---|---|---|---|---|---|---|---|---|",
     ]
-    for key, levels in rows.items():
-        for level, items in levels.items():
-            ratios = [it["ratio"] for it in items if np.isfinite(it["ratio"])]
-            scaled = f"{sum('scale' in it for it in items)}/{len(items)}"
-            median = f"{np.median(ratios):.3f}" if ratios else "-"
-            listed = " ".join(f"{r:.3f}" for r in ratios) or "-"
-            sizes = [it.get("priors_size") for it in items]
-            priors = (
-                " ".join(f"{x:.3f}" for x in sizes)
-                if all(x is not None for x in sizes)
-                else "-"
-            )
-            lines.append(
-                f"| {key} | {level} | {len(items)} | {median} | {listed} | {priors} "
-                f"| {scaled} | {coverage(items)} |"
-            )
+    lines += synthetic_rows(rows)
+    lines += synthetic_rows(
+        seeds, " (twelve draws, `bench/gba_seeds.py`)", {"realistic", "fitted"}
+    )
     for name, it in real.items():
         ratio = it["ratio"]
         lines.append(
@@ -275,7 +329,10 @@ def main() -> None:
         "",
         f"Measured at commit {machine()['commit']} by `.venv/bin/python "
         "bench/metric_scale.py` on the models of `bench/accuracy.py` (the default "
-        "`map`) and `bench/static_cameras.py`: per model the median over camera pairs "
+        "`map`), `bench/gba_seeds.py` (the default `map`; mapped at "
+        f"{run_commit('gba_seeds.json')} with one person, "
+        f"{run_commit('gba_seeds_p3.json')} with three) and "
+        "`bench/static_cameras.py`: per model the median over camera pairs "
         "of the model's distance between two cameras over the true one (1: metres "
         "exactly). *scaled models*: those `map` could scale (it needs triangulated "
         "keypoints of people with priors). *the priors' size*: the median over the "
@@ -290,8 +347,8 @@ def main() -> None:
         "on every model with today's code); *truth within*: models "
         "whose |log ratio| is at most one and two of it. *pose2sim, one instant, "
         "two cameras*: the two-camera models of `bench/subsets.py` that `map` "
-        f"wrote (at {subsets_commit()}); *within {WRONG_DEG:.0f} deg*: those whose "
-        "relative pose is "
+        f"wrote (at {run_commit('subsets.json')}); *within {WRONG_DEG:.0f} deg*: "
+        "those whose relative pose is "
         "within it of the calibration (a wrong pose's scale is as wrong as the "
         "pose, and `map` warns of such pairs).",
     ]
