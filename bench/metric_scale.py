@@ -6,8 +6,10 @@ under bench/out/runs/accuracy), the default `map`'s models of `bench/gba_seeds.p
 three) and the static-camera models of `bench/static_cameras.py`, and compares
 camera distances with the ground truth: the median over camera pairs of model
 distance / true distance (1 = right size), and how often the truth lies within
-one and two of the uncertainty `map` reports with its scale (estimated again on every model with today's code, and the
-priors' own size beside it on the synthetic scenes).
+one and two of the uncertainty `map` reports with its scale (estimated again on
+every model with today's code, and the priors' own size beside it on the
+synthetic scenes). A scene made with another noise model than today's is left
+out.
 ``--instants`` reads the per-instant models of `bench/evidence.py --seeds` instead
 (`map` and `map --gba` on each seed's databases: pose2sim's instants, 4 images
 each) and writes bench/out/metric_scale_instants.json and the "scale-instants"
@@ -23,13 +25,14 @@ from __future__ import annotations
 
 import argparse
 import json
+import logging
 from dataclasses import asdict
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 from accuracy import LEVELS
-from common import DOCS, OUT, machine, replace_section, write_json
+from common import DOCS, OUT, machine, replace_section, scene_is_current, write_json
 from evidence import ARMS
 from realdata import SHARED, load_calibration
 
@@ -42,6 +45,7 @@ from colmap_vc.priors import read_priors
 from colmap_vc.synthetic.gt import gt_persons_path, read_gt_persons
 
 ARM = "VC_p_keypoint_BA"
+logger = logging.getLogger(__name__)
 
 
 def _largest(sparse: Path) -> tuple[pycolmap.Reconstruction, Path] | None:
@@ -162,6 +166,9 @@ def seeds_domes() -> dict[str, dict[str, list[dict]]]:
         scene = OUT / "scenes" / run.name
         found = _largest(run / "default" / "sparse")
         if found is None or not (scene / "gt" / "sparse").is_dir():
+            continue
+        if not scene_is_current(scene):  # made with another noise model
+            logger.warning("%s: left out, made with another noise model", run.name)
             continue
         _, people, seed, level = run.name.split("_")[1:]
         gt = poses_by_name(pycolmap.Reconstruction(scene / "gt" / "sparse"))
