@@ -500,12 +500,9 @@ def _run_map(cmd: Map) -> int:
     )
     scale = summary.metric_scale
     if scale is not None:
-        people = f"{scale.num_people} {'person' if scale.num_people == 1 else 'people'}"
-        if scale.relative_pose:
-            people += f", the relative pose +-{100 * scale.relative_pose:.1f}%"
         sys.stdout.write(
             f"  in metres from the people's size: x{scale.scale:.4g}, "
-            f"+-{100 * scale.uncertainty:.1f}% ({people}; metric_scale.json)\n"
+            f"{scale.describe()}; see metric_scale.json\n"
         )
     elif options.metric_scale:
         sys.stdout.write(f"  scale arbitrary: {summary.no_scale}\n")

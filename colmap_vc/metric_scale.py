@@ -93,6 +93,17 @@ class MetricScale:
     relative_pose: float = 0.0  # the relative pose's part (two images placed by
     # their people alone; 0 otherwise): relative_pose_uncertainty
 
+    def describe(self) -> str:
+        """The uncertainty as the CLI and the report print it: "+-5.0% (10
+        people)", with the relative pose's part where there is one."""
+        people = "person" if self.num_people == 1 else "people"
+        pose = (
+            f", the relative pose +-{100 * self.relative_pose:.1f}%"
+            if self.relative_pose
+            else ""
+        )
+        return f"+-{100 * self.uncertainty:.1f}% ({self.num_people} {people}{pose})"
+
 
 def scale_uncertainty(spread: float, num_person_views: int, num_people: float) -> float:
     """Relative standard error of the metric scale: the people's shared size error

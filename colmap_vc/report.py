@@ -355,16 +355,7 @@ def _scale_text(model_path: Path | None) -> str:
     scale = None if model_path is None else read_metric_scale(Path(model_path))
     if scale is None:
         return "arbitrary (no metric_scale.json beside the model)"
-    people = "person" if scale.num_people == 1 else "people"
-    pose = (
-        f", the relative pose +-{100 * scale.relative_pose:.1f}%"
-        if scale.relative_pose
-        else ""
-    )
-    return (
-        f"metres, from the people's size: +-{100 * scale.uncertainty:.1f}% "
-        f"({scale.num_people} {people}{pose})"
-    )
+    return f"metres, from the people's size: {scale.describe()}"
 
 
 def _summary_section(ctx: _Context, extra_metrics: Mapping[str, Any]) -> str:

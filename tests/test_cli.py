@@ -56,7 +56,10 @@ def test_augment_map_eval_strip(dome_scene, tmp_path, capsys):
     out = capsys.readouterr().out
     assert "registered 6/6" in out
     # In metres, with the scale's uncertainty: the people's size, 2 people.
-    assert "in metres from the people's size" in out and "(2 people;" in out
+    assert (
+        "in metres from the people's size" in out
+        and "(2 people); see metric_scale.json" in out
+    )
     # the output exists: a second run without --overwrite fails (exit 1), nothing lost
     assert (
         main(

@@ -11,6 +11,7 @@ import pytest
 
 from colmap_vc.metric_scale import (
     PERSON_SIZE_SD,
+    MetricScale,
     effective_people,
     hodges_lehmann,
     read_metric_scale,
@@ -203,3 +204,19 @@ def test_the_relative_pose_term_follows_names_not_image_ids() -> None:
     )
     # A scale that does not depend on the poses has no such part.
     assert relative_pose_uncertainty(one, lambda model: 2.0, 3.8) == 0.0
+
+
+def test_describe_gives_the_uncertainty_people_and_relative_pose() -> None:
+    one = MetricScale(
+        scale=1.2, spread=0.02, num_person_views=4, num_people=1, uncertainty=0.0712
+    )
+    assert one.describe() == "+-7.1% (1 person)"
+    pair = MetricScale(
+        scale=1.2,
+        spread=0.02,
+        num_person_views=2,
+        num_people=3,
+        uncertainty=0.15,
+        relative_pose=0.142,
+    )
+    assert pair.describe() == "+-15.0% (3 people, the relative pose +-14.2%)"
