@@ -47,9 +47,21 @@ from colmap_vc.evaluation import (
     poses_by_name,
 )
 from colmap_vc.gba import ceres
-from colmap_vc.gba.up import rotation_matrix
 
 logger = logging.getLogger("bench.coplanarity")
+
+
+def _rotation(q: np.ndarray) -> np.ndarray:
+    """R of a quaternion (x, y, z, w), normalised first (the numeric derivatives
+    step off the unit sphere; the pose manifold keeps only the tangent part)."""
+    x, y, z, w = q / np.linalg.norm(q)
+    return np.array(
+        [
+            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
+        ]
+    )
 
 
 def _skew(t: np.ndarray) -> np.ndarray:
@@ -77,9 +89,7 @@ class PairSampsonCost(pyceres.CostFunction):
         self.set_parameter_block_sizes([7, 7])
 
     def residuals(self, pose1: np.ndarray, pose2: np.ndarray) -> np.ndarray:
-        R1 = rotation_matrix(pose1[:4] / np.linalg.norm(pose1[:4]))
-        R2 = rotation_matrix(pose2[:4] / np.linalg.norm(pose2[:4]))
-        R = R2 @ R1.T
+        R = _rotation(pose2[:4]) @ _rotation(pose1[:4]).T
         E = _skew(pose2[4:] - R @ pose1[4:]) @ R
         b1, b2 = self.rays
         Eb1, Etb2 = b1 @ E.T, b2 @ E
@@ -332,12 +342,12 @@ def main() -> None:
         if key.startswith("pose2sim"):  # a seed's score: its instants' mean
             hard = [float(np.mean(arms["hard"][u])) for u in units]
             soft = [float(np.mean(arms["soft"][u])) for u in units]
-            label, what = key, f"{len(units)} seeds (5 instants each)"
+            label, what = key, f"{len(units)} seed(s), 5 instants each"
         else:
             hard = [arms["hard"][u] for u in units]
             soft = [arms["soft"][u] for u in units]
             label = f"1-person domes, `{key.removeprefix('domes_')}` priors"
-            what = f"{len(units)} domes"
+            what = f"{len(units)} dome(s)"
         lines.append(
             f"| {label} | {what} | {np.mean(hard):.1f} / {np.mean(soft):.1f} "
             f"| {_paired(soft, hard)} | {' '.join(f'{x:.1f}' for x in hard)} "
