@@ -37,15 +37,10 @@ import numpy as np
 import pyceres
 import pycolmap
 from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
-from realdata import INSTANTS, SHARED, _largest_model, load_calibration
+from evidence import run_seed
 
-from colmap_vc import cli, mapping
-from colmap_vc.evaluation import (
-    evaluate_poses,
-    evaluate_reconstruction,
-    pose_auc,
-    poses_by_name,
-)
+from colmap_vc import mapping
+from colmap_vc.evaluation import evaluate_reconstruction, pose_auc
 from colmap_vc.gba import ceres
 
 logger = logging.getLogger("bench.coplanarity")
@@ -251,28 +246,6 @@ def soft_coplanarity() -> Iterator[None]:
             module.bundle_adjust_inplace = original_ba  # type: ignore[attr-defined]
 
 
-def pose2sim(ds: str, seed: int, arm: str) -> list[float]:
-    """AUC@15 per instant: `map` on the seed's database of each instant."""
-    data = SHARED / f"pose2sim_{ds}"
-    _, gt = load_calibration(data)
-    aucs = []
-    for instant in INSTANTS:
-        where = "order0" if seed == 0 else f"seed{seed}"
-        db = OUT / "realdata" / ds / instant / where / "database.db"
-        if not db.exists():
-            raise SystemExit(f"{db} missing: run bench/realdata.py --seeds first")
-        out = OUT / "coplanarity" / arm / ds / f"seed{seed}" / instant
-        shutil.rmtree(out, ignore_errors=True)
-        args = ["map", str(db), "--image-path", str(data / "images")]
-        args += ["--output-path", str(out), "--no-show-progress", "--seed", str(seed)]
-        code = cli.main(args)
-        rec = _largest_model(out) if code == 0 else None
-        pred = {} if rec is None else poses_by_name(rec)
-        now = {n: g for n, g in gt.items() if instant in n}
-        aucs.append(float(evaluate_poses(pred, now).auc["15"]))
-    return aucs
-
-
 def dome(level: str, seed: int, arm: str) -> float:
     """AUC@15 of `map` on one of `bench/gba_seeds.py`'s 1-person domes."""
     name = f"seeds_dome_p1_s{seed}_{level}"
@@ -319,9 +292,10 @@ def main() -> None:
             for ds in ("single", "multi"):
                 for seed in args.seeds:
                     logger.info("%s: pose2sim_%s, seed %d", arm, ds, seed)
+                    work = OUT / "coplanarity" / arm / ds / f"seed{seed}"
                     results.setdefault(f"pose2sim_{ds}", {}).setdefault(arm, {})[
                         str(seed)
-                    ] = pose2sim(ds, seed, arm)
+                    ] = run_seed(ds, [], seed, work)
             for level in args.levels:
                 logger.info("%s: 1-person domes, %s priors", arm, level)
                 results.setdefault(f"domes_{level}", {})[arm] = {
