@@ -20,8 +20,11 @@ augment and the mapper (the databases of `bench/realdata.py --seeds`), and the
 twelve 1-person domes of `bench/gba_seeds.py` per prior level.
 
     .venv/bin/python bench/coplanarity.py [--seeds 0 1 2] [--levels realistic fitted]
+        [--gba]
 
-Writes bench/out/coplanarity.json and the "coplanarity" section of docs/gba.md.
+Writes bench/out/coplanarity.json and the "coplanarity" section of docs/gba.md
+(with ``--gba``, `map --gba` with its surface tracks by identity both ways:
+coplanarity_gba.json and "coplanarity-gba").
 """
 
 from __future__ import annotations
@@ -42,6 +45,7 @@ from evidence import run_seed
 from colmap_vc import mapping
 from colmap_vc.evaluation import evaluate_reconstruction, pose_auc
 from colmap_vc.gba import ceres
+from colmap_vc.keypoint_ba import KeypointBaOptions
 
 logger = logging.getLogger("bench.coplanarity")
 
@@ -246,14 +250,15 @@ def soft_coplanarity() -> Iterator[None]:
             module.bundle_adjust_inplace = original_ba  # type: ignore[attr-defined]
 
 
-def dome(level: str, seed: int, arm: str) -> float:
-    """AUC@15 of `map` on one of `bench/gba_seeds.py`'s 1-person domes."""
+def dome(level: str, seed: int, arm: str, gba: bool) -> float:
+    """AUC@15 of `map` (``gba``: `map --gba`) on one of `bench/gba_seeds.py`'s
+    1-person domes."""
     name = f"seeds_dome_p1_s{seed}_{level}"
     scene = OUT / "scenes" / name
     augmented = OUT / "runs" / "gba_seeds" / name / "augmented.db"
     if not augmented.exists():
         raise SystemExit(f"{augmented} missing: run bench/gba_seeds.py first")
-    run = OUT / "coplanarity" / arm / name
+    run = OUT / "coplanarity" / (f"{arm}_gba" if gba else arm) / name
     shutil.rmtree(run, ignore_errors=True)
     run.mkdir(parents=True)
     shutil.copyfile(augmented, run / "database.db")
@@ -261,7 +266,10 @@ def dome(level: str, seed: int, arm: str) -> float:
         run / "database.db",
         scene / "images",
         run / "sparse",
-        mapping.MappingOptions(show_progress=False),
+        mapping.MappingOptions(
+            keypoint_ba_options=KeypointBaOptions(surface_tracks=gba),
+            show_progress=False,
+        ),
     )
     gt = pycolmap.Reconstruction(scene / "gt" / "sparse")
     errors = np.array([p.error_deg for p in evaluate_reconstruction(rec, gt).pairs])
@@ -279,8 +287,14 @@ def main() -> None:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--levels", nargs="+", default=["realistic", "fitted"])
     parser.add_argument("--domes", type=int, default=12, help="domes per level")
+    parser.add_argument(
+        "--gba",
+        action="store_true",
+        help="`map --gba` (its surface tracks by identity) instead of `map`",
+    )
     parser.add_argument("--no-docs", action="store_true")
     args = parser.parse_args()
+    refinement = "`map --gba`" if args.gba else "`map`"
     setup_logging()
     logging.getLogger("colmap_vc").setLevel(logging.WARNING)
     results: dict[str, dict] = {}
@@ -292,22 +306,23 @@ def main() -> None:
             for ds in ("single", "multi"):
                 for seed in args.seeds:
                     logger.info("%s: pose2sim_%s, seed %d", arm, ds, seed)
-                    work = OUT / "coplanarity" / arm / ds / f"seed{seed}"
+                    where = f"{arm}_gba" if args.gba else arm
+                    work = OUT / "coplanarity" / where / ds / f"seed{seed}"
                     results.setdefault(f"pose2sim_{ds}", {}).setdefault(arm, {})[
                         str(seed)
-                    ] = run_seed(ds, [], seed, work)
+                    ] = run_seed(ds, ["--gba"] if args.gba else [], seed, work)
             for level in args.levels:
                 logger.info("%s: 1-person domes, %s priors", arm, level)
                 results.setdefault(f"domes_{level}", {})[arm] = {
-                    str(s): dome(level, s, arm) for s in range(args.domes)
+                    str(s): dome(level, s, arm, args.gba) for s in range(args.domes)
                 }
         elapsed[arm] = time.perf_counter() - t0
     write_json(
-        "coplanarity.json",
+        "coplanarity_gba.json" if args.gba else "coplanarity.json",
         {"machine": machine(), "results": results, "elapsed_s": elapsed},
     )
     lines = [
-        "| data | units | mean AUC@15: hard (`map`) / soft | soft - hard "
+        f"| data | units | mean AUC@15: hard ({refinement}) / soft | soft - hard "
         "| per unit, hard | per unit, soft |",
         "|---|---|---|---|---|---|",
     ]
@@ -331,10 +346,11 @@ def main() -> None:
     lines += [
         "",
         f"Measured at commit {machine()['commit']} by `.venv/bin/python "
-        f"bench/coplanarity.py --seeds {seeds}` ({sum(elapsed.values()) / 60:.0f} "
-        f"min; the soft arm {elapsed['soft'] / elapsed['hard']:.1f} times the hard "
-        "arm's time, its residuals in Python): `map` on the same databases, the "
-        "surface VCs as 3D points (hard, `map` as it is) or as Sampson residuals "
+        f"bench/coplanarity.py --seeds {seeds}{' --gba' if args.gba else ''}` "
+        f"({sum(elapsed.values()) / 60:.0f} min; the soft arm "
+        f"{elapsed['soft'] / elapsed['hard']:.1f} times the hard arm's time, its "
+        f"residuals in Python): {refinement} on the same databases, the surface "
+        f"VCs as 3D points (hard, {refinement} as it is) or as Sampson residuals "
         "per pair of views (soft). pose2sim: each instant's 4 images mapped on "
         "their own with the seed's databases (`bench/realdata.py --seeds`), a "
         "seed's score the mean of its five instants' AUC@15; domes: "
@@ -344,7 +360,8 @@ def main() -> None:
     body = "\n".join(lines)
     print(body)
     if not args.no_docs:
-        replace_section(DOCS / "gba.md", "coplanarity", body)
+        section = "coplanarity-gba" if args.gba else "coplanarity"
+        replace_section(DOCS / "gba.md", section, body)
 
 
 if __name__ == "__main__":
