@@ -33,6 +33,7 @@ import argparse
 import contextlib
 import logging
 import shutil
+import sys
 import time
 from collections.abc import Iterator
 
@@ -231,16 +232,15 @@ def soft_coplanarity() -> Iterator[None]:
         _retriangulate(rec, point_ids)
         return summary
 
-    import colmap_vc.keypoint_ba
-    import colmap_vc.mapping.pipeline
-    import colmap_vc.mapping.strategies
+    import colmap_vc.cli  # noqa: F401  (every module that adjusts, imported)
 
-    modules = (
-        ceres,
-        colmap_vc.keypoint_ba,
-        colmap_vc.mapping.pipeline,
-        colmap_vc.mapping.strategies,
-    )
+    modules = [  # every module that imported the function by name
+        module
+        for name, module in sorted(sys.modules.items())
+        if name.startswith("colmap_vc")
+        and getattr(module, "bundle_adjust_inplace", None) is original_ba
+    ]
+    logger.info("soft coplanarity in %s", ", ".join(m.__name__ for m in modules))
     for module in modules:
         module.bundle_adjust_inplace = adjust  # type: ignore[attr-defined]
     try:
