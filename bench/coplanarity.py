@@ -47,6 +47,7 @@ from colmap_vc import mapping
 from colmap_vc.evaluation import evaluate_reconstruction, pose_auc
 from colmap_vc.gba import ceres
 from colmap_vc.keypoint_ba import KeypointBaOptions
+from colmap_vc.verification import skew
 
 logger = logging.getLogger("bench.coplanarity")
 
@@ -54,18 +55,7 @@ logger = logging.getLogger("bench.coplanarity")
 def _rotation(q: np.ndarray) -> np.ndarray:
     """R of a quaternion (x, y, z, w), normalised first (the numeric derivatives
     step off the unit sphere; the pose manifold keeps only the tangent part)."""
-    x, y, z, w = q / np.linalg.norm(q)
-    return np.array(
-        [
-            [1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
-            [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
-            [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)],
-        ]
-    )
-
-
-def _skew(t: np.ndarray) -> np.ndarray:
-    return np.array([[0.0, -t[2], t[1]], [t[2], 0.0, -t[0]], [-t[1], t[0], 0.0]])
+    return pycolmap.Rotation3d(q / np.linalg.norm(q)).matrix()
 
 
 class PairSampsonCost(pyceres.CostFunction):
@@ -90,7 +80,7 @@ class PairSampsonCost(pyceres.CostFunction):
 
     def residuals(self, pose1: np.ndarray, pose2: np.ndarray) -> np.ndarray:
         R = _rotation(pose2[:4]) @ _rotation(pose1[:4]).T
-        E = _skew(pose2[4:] - R @ pose1[4:]) @ R
+        E = skew(pose2[4:] - R @ pose1[4:]) @ R
         b1, b2 = self.rays
         Eb1, Etb2 = b1 @ E.T, b2 @ E
         e = np.sum(b2 * Eb1, axis=1)
