@@ -40,7 +40,7 @@ from colmap_vc.evaluation import camera_distance_ratio, evaluate_poses, poses_by
 from colmap_vc.mapping import MappingOptions
 from colmap_vc.mapping.inputs import read_inputs
 from colmap_vc.mapping.pipeline import people_scale
-from colmap_vc.metric_scale import read_metric_scale
+from colmap_vc.metric_scale import read_metric_scale, skeleton_ratio
 from colmap_vc.priors import read_priors
 from colmap_vc.synthetic.gt import gt_persons_path, read_gt_persons
 
@@ -57,16 +57,19 @@ def _largest(sparse: Path) -> tuple[pycolmap.Reconstruction, Path] | None:
     return best
 
 
-def scale_info(folder: Path, database_path: Path | None = None) -> dict:
-    """What `map` wrote beside a model (metric_scale.json), with the uncertainty
-    of today's code: estimated again on the model (in metres already: the same
-    ratios about 1) with ``database_path``'s priors (and the static cameras
-    augment recorded there), or without it, where the file has none, from its
-    spread and people (``read_metric_scale``)."""
+def scale_info(folder: Path, database_path: Path | None, ratio: float) -> dict:
+    """What `map` wrote beside a model (metric_scale.json), with the scale and
+    uncertainty of today's code: estimated again on the model with
+    ``database_path``'s priors (and the static cameras augment recorded there).
+    ``ratio`` (the model's camera distances over the truth's, as written) comes
+    back as the ratio the model has with today's scale (``map`` applies the
+    scale last, so mapping again would give the same model at that scale), and
+    as written (``ratio_as_written``). Without a database, or where the file has
+    none, from what was written (``read_metric_scale``)."""
     scale = read_metric_scale(folder)
     if scale is None:
-        return {}
-    info = asdict(scale)
+        return {"ratio": ratio}
+    info = {**asdict(scale), "ratio": ratio, "ratio_as_written": ratio}
     if database_path is not None:
         again = people_scale(
             pycolmap.Reconstruction(folder),
@@ -75,18 +78,20 @@ def scale_info(folder: Path, database_path: Path | None = None) -> dict:
             MappingOptions(),
         )
         if again is not None:
+            info["ratio"] = ratio * again.scale
             info["uncertainty"] = again.uncertainty
             info["relative_pose"] = again.relative_pose
     return info
 
 
 def priors_size(scene: Path, level: str, folder: str | None = None) -> float | None:
-    """How far the priors of ``level`` put the people: over every person view of
-    a real person, the median over its keypoints of predicted / true distance from
-    the camera, and the median of those (``realistic_ids`` reads ``realistic``'s
-    priors). The ratio a model would have if the priors' size were all there is:
-    the person's shared size error (scene.json's ``size_error``), and what another
-    body's proportions and the refit add (docs/synthetic.md). ``folder``: the
+    """How large the priors of ``level`` make the people: over every person view
+    of a real person, its skeleton's size predicted / true (``skeleton_ratio``,
+    as `map` reads the scale), and the median of those (``realistic_ids`` reads
+    ``realistic``'s priors). The ratio a model would have if the priors' size
+    were all there is: the person's shared size error (scene.json's
+    ``size_error``), one per view, and what another body's proportions and the
+    joints' errors add (docs/synthetic.md). ``folder``: the
     scene's folder of those priors, where it is not the accuracy bench's."""
     folder = folder or LEVELS[level.removesuffix("_ids")]
     persons = gt_persons_path(scene, folder)
@@ -104,13 +109,10 @@ def priors_size(scene: Path, level: str, folder: str | None = None) -> float | N
             true = np.asarray(true_person[true_id].keypoints_cam)
             joints = len(true)  # the fitted level adds surface landmarks after them
             valid = np.asarray(person.keypoints_valid)[:joints]
-            if not valid.any():
+            if valid.sum() < 2:
                 continue
             guess = np.asarray(person.keypoints_cam)[:joints][valid]
-            true = true[valid]
-            ratios.append(
-                np.median(np.linalg.norm(guess, axis=1) / np.linalg.norm(true, axis=1))
-            )
+            ratios.append(skeleton_ratio(guess, true[valid]))
     return float(np.median(ratios)) if ratios else None
 
 
@@ -140,9 +142,10 @@ def two_camera_models() -> dict[str, list[dict]]:
             out.setdefault(ds, []).append(
                 {
                     "model": run.name,
-                    "ratio": camera_distance_ratio(pred, truth),
                     "pair_error_deg": evaluate_poses(pred, truth).median_error_deg,
-                    **scale_info(folder, run / "database.db"),
+                    **scale_info(
+                        folder, run / "database.db", camera_distance_ratio(pred, truth)
+                    ),
                 }
             )
     return out
@@ -177,9 +180,12 @@ def seeds_domes() -> dict[str, dict[str, list[dict]]]:
             {
                 "scene": run.name,
                 "seed": int(seed[1:]),
-                "ratio": camera_distance_ratio(poses_by_name(found[0]), gt),
                 "priors_size": priors_size(scene, level, "priors"),
-                **scale_info(found[1], run / "default" / "database.db"),
+                **scale_info(
+                    found[1],
+                    run / "default" / "database.db",
+                    camera_distance_ratio(poses_by_name(found[0]), gt),
+                ),
             }
         )
     for levels in rows.values():
@@ -224,8 +230,7 @@ def per_instant(ds: str, arm: str) -> list[dict]:
         out.append(
             {
                 "model": f"{seed}/{instant_dir.name}",
-                "ratio": ratio,
-                **scale_info(found[1], db if db.exists() else None),
+                **scale_info(found[1], db if db.exists() else None, ratio),
             }
         )
     return out
@@ -274,12 +279,12 @@ def main() -> None:
                 continue
             rec, folder = found
             db = level_dir / ARM / "database.db"
-            info = scale_info(folder, db if db.exists() else None)
             ratio = camera_distance_ratio(poses_by_name(rec), gt)
+            info = scale_info(folder, db if db.exists() else None, ratio)
             key = f"{group}, {people} {'person' if people == '1' else 'people'}"
             size = priors_size(scene, level_dir.name)
             rows.setdefault(key, {}).setdefault(level_dir.name, []).append(
-                {"scene": run.name, "ratio": ratio, "priors_size": size, **info}
+                {"scene": run.name, "priors_size": size, **info}
             )
     static = OUT / "static_cameras.json"
     real: dict[str, dict] = {}
@@ -292,8 +297,11 @@ def main() -> None:
                     where = OUT / "static_cameras" / ds
                     db = where / "database.db"
                     real[key] = {
-                        "ratio": r["distance_ratio"],
-                        **scale_info(where / sparse / "0", db if db.exists() else None),
+                        **scale_info(
+                            where / sparse / "0",
+                            db if db.exists() else None,
+                            r["distance_ratio"],
+                        ),
                     }
     pairs = two_camera_models()
     seeds = seeds_domes()

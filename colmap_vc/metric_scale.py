@@ -3,26 +3,34 @@
 A structure-from-motion model has no scale; the people in it do. Every person prior
 places its keypoints in metres in its camera's frame (the fitted body has a human
 size), and the model triangulates the same keypoints (tracks by identity, as the
-keypoint bundle adjustment uses them) up to scale. The ratio of a keypoint's distance
-from the camera in the prior to its distance in the model is the scale; each
-(image, person) gives the median of its keypoints' ratios, and the model's scale is
-the median over them.
+keypoint bundle adjustment uses them) up to scale. How much larger a person's
+skeleton is in the prior than in the model is the scale: each (image, person) gives
+the weighted median over pairs of its keypoints of their distance in the prior over
+their distance in the model (:func:`skeleton_ratio`), and the model's scale is a
+robust mean over them (Hodges-Lehmann).
+
+The skeleton's size, not how far the prior puts it from the camera: a fit from one
+image reads a body's size from its proportions and then places it by reprojection,
+and the placement adds an error of its own. Against the calibration, the bundled
+estimator puts pose2sim's man 4-5% nearer than his fitted size says, and the
+avatar of pose2sim_multi 3% nearer; the skeleton's size is within 1-2% of the
+man's (docs/results.md, "The scale from the skeleton's size instead of its
+distance"). Until 2026-11 the scale was the ratio of distances from the camera.
 
 What limits it is the body size a fit assumes from 2D evidence: a person fitted 5%
-too tall puts every one of their keypoints 5% too far in every view, so the error is
-shared by a person's views and averages out only over different people. The reported
-spread is that of the (image, person) ratios (a robust standard deviation, relative);
-``num_people`` says over how many identities it was taken. The scale's uncertainty
+too tall is 5% too large in every view, so the error is shared by a person's views
+and averages out only over different people. The reported spread is that of the
+(image, person) ratios (a robust standard deviation, relative); ``num_people`` says
+over how many identities it was taken. The scale's uncertainty
 (:func:`scale_uncertainty`) adds the size error the views share: one person's fit
 is only as good as that person is close to the size the fit assumes.
 
 On pose2sim_single (one real person, four cameras, five instants) the camera
-distances come out 3.8% short of the calibration, on pose2sim_multi 3.7% long
-(docs/results.md, "Metric scale from the people"). There the views of one person
-agree within about 3% and the people differ by up to 15%: real fits err per
-person, so the scale is as good as the people's average size. The synthetic priors
-err the same way (a size error per person, shared by its views, and a smaller one
-per view: docs/synthetic.md).
+distances come out within 1% of the calibration, on pose2sim_multi 8% long: there
+the avatar's fit is 15% larger than she is and the man's 2% smaller. Real fits err
+per person, so the scale is as good as the people's average size. The synthetic
+priors err the same way (a size error per person, shared by its views, and a
+smaller one per view: docs/synthetic.md).
 """
 
 from __future__ import annotations
@@ -227,7 +235,7 @@ def _person_views(
 ) -> dict[tuple[int, int], tuple[IndexArray, FloatArray, int]]:
     """Per (image id, identity) with a prior person: the ``good`` observations of
     its keypoints that the prior places (indices into ``tracks``), the prior's
-    distance of each from the camera (metres), and the prior person's index."""
+    3D point of each (camera frame, metres), and the prior person's index."""
     assert tracks.keys is not None
     out = {}
     for image_id in np.unique(tracks.image_id[good]):  # loop over images
@@ -251,8 +259,8 @@ def _person_views(
                 else np.ones(len(j), bool)
             )
             if valid.any():
-                d_prior = np.linalg.norm(p.keypoints_cam[j[valid]], axis=1)
-                out[(int(image_id), int(ident))] = (obs[rows][valid], d_prior, k)
+                points = p.keypoints_cam[j[valid]]
+                out[(int(image_id), int(ident))] = (obs[rows][valid], points, k)
     return out
 
 
@@ -262,16 +270,43 @@ def _ratios(
     X: FloatArray,
     person_views: Mapping[tuple[int, int], tuple[IndexArray, FloatArray, int]],
 ) -> dict[tuple[int, int], float]:
-    """Per (image id, identity): the median over its keypoints of the prior's
-    distance from the camera over the model's (``X``: the tracks' points)."""
+    """Per (image id, identity) with two keypoints or more: the skeleton's size
+    in the prior over the model's (``X``: the tracks' points), the median over
+    the pairs of its keypoints of the prior's distance between the two over the
+    model's, each pair weighted by its squared length in the prior
+    (:func:`skeleton_ratio`)."""
     ratios = {}
-    for (image_id, ident), (obs, d_prior, _) in person_views.items():
-        T = rec.image(image_id).cam_from_world().matrix()
-        d = np.linalg.norm(X[tracks.track[obs]] @ T[:, :3].T + T[:, 3], axis=1)
-        ok = np.isfinite(d)
-        if ok.any():
-            ratios[(image_id, ident)] = float(np.median(d_prior[ok] / d[ok]))
+    for key, (obs, prior_cam, _) in person_views.items():  # loop over views
+        ratio = skeleton_ratio(prior_cam, X[tracks.track[obs]])
+        if np.isfinite(ratio):
+            ratios[key] = ratio
     return ratios
+
+
+def skeleton_ratio(prior: FloatArray, model: FloatArray) -> float:
+    """How much larger one person's keypoints are in the prior (metres) than in
+    the model: the weighted median over every pair of keypoints of the ratio of
+    their distances, each pair weighted by its squared length in the prior (a
+    triangulated point's error is about the same for every keypoint, so a
+    pair's relative error falls with its length and its log ratio's variance
+    with the length squared). Distances, not positions: the fit's rotation and
+    translation do not enter. NaN with fewer than two keypoints."""
+    prior, model = np.asarray(prior, np.float64), np.asarray(model, np.float64)
+    a, b = np.triu_indices(len(prior), 1)
+    d_prior = np.linalg.norm(prior[a] - prior[b], axis=1)
+    d_model = np.linalg.norm(model[a] - model[b], axis=1)
+    ok = (d_prior > 0) & (d_model > 0) & np.isfinite(d_model)
+    if not ok.any():
+        return float("nan")
+    return weighted_median(d_prior[ok] / d_model[ok], d_prior[ok] ** 2)
+
+
+def weighted_median(values: FloatArray, weights: FloatArray) -> float:
+    """The value at which the weights below reach half the total (the lower
+    one on a tie)."""
+    order = np.argsort(values, kind="stable")
+    cumulative = np.cumsum(np.asarray(weights, np.float64)[order])
+    return float(values[order][np.searchsorted(cumulative, 0.5 * cumulative[-1])])
 
 
 def relative_pose_uncertainty(

@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 import pytest
+from scipy.spatial.transform import Rotation
 
 from colmap_vc.metric_scale import (
     PERSON_SIZE_SD,
@@ -17,6 +18,8 @@ from colmap_vc.metric_scale import (
     read_metric_scale,
     relative_pose_uncertainty,
     scale_uncertainty,
+    skeleton_ratio,
+    weighted_median,
     within_person_spread,
 )
 
@@ -51,6 +54,45 @@ def test_hodges_lehmann_does_not_depend_on_order_even_when_sampled() -> None:
     assert sampled == pytest.approx(full, abs=0.005)
     with pytest.raises(ValueError, match="at least one"):
         hodges_lehmann(np.array([]))
+
+
+def _skeleton(seed: int = 0) -> np.ndarray:
+    """17 points spread like a standing body (0.4 x 0.3 x 1.7 m)."""
+    return np.random.default_rng(seed).uniform(-0.5, 0.5, (17, 3)) * [0.4, 0.3, 1.7]
+
+
+def test_skeleton_ratio_reads_size_not_placement() -> None:
+    model = _skeleton()
+    turn = Rotation.from_rotvec([0.3, -1.2, 0.5]).as_matrix()
+    prior = 1.07 * model @ turn.T + [0.2, -0.1, 4.0]
+    assert skeleton_ratio(prior, model) == pytest.approx(1.07)
+    # The same fit placed 10% nearer the camera: the distances from the camera
+    # say 0.9 x, the skeleton still 1.07.
+    nearer = prior - [0.0, 0.0, 0.4]
+    assert skeleton_ratio(nearer, model) == pytest.approx(1.07)
+    assert (
+        np.median(np.linalg.norm(nearer, axis=1) / np.linalg.norm(prior, axis=1)) < 0.95
+    )
+    # And the model's own frame and scale: 3 x larger model, 1 / 3 the ratio.
+    assert skeleton_ratio(prior, 3.0 * model - 5.0) == pytest.approx(1.07 / 3.0)
+
+
+def test_skeleton_ratio_resists_a_stray_keypoint_and_needs_two() -> None:
+    model = _skeleton(1)
+    prior = 0.95 * model
+    stray = model.copy()
+    stray[4] += [0.5, 0.0, 0.0]  # one keypoint triangulated half a metre off
+    assert skeleton_ratio(prior, stray) == pytest.approx(0.95, rel=0.03)
+    noisy = model + np.random.default_rng(2).normal(0, 0.02, model.shape)
+    assert skeleton_ratio(prior, noisy) == pytest.approx(0.95, rel=0.02)
+    assert np.isnan(skeleton_ratio(prior[:1], model[:1]))
+
+
+def test_weighted_median() -> None:
+    v = np.array([3.0, 1.0, 2.0])
+    assert weighted_median(v, np.ones(3)) == 2.0
+    assert weighted_median(v, np.array([5.0, 1.0, 1.0])) == 3.0
+    assert weighted_median(np.array([1.0, 2.0]), np.ones(2)) == 1.0  # lower on a tie
 
 
 def test_uncertainty_averages_the_size_error_over_people_not_views() -> None:
