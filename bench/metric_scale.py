@@ -349,12 +349,15 @@ def main() -> None:
         f"{run_commit('gba_seeds_p3.json')} with three) and "
         "`bench/static_cameras.py`: per model the median over camera pairs "
         "of the model's distance between two cameras over the true one (1: metres "
-        "exactly). *scaled models*: those `map` could scale (it needs triangulated "
-        "keypoints of people with priors). *the priors' size*: the median over the "
-        "real people's views of their keypoints' predicted / true distance from the "
-        "camera (a size error per person shared by its views, one per view, and "
-        "what another body's proportions add: docs/synthetic.md), the ratio if that "
-        "were all. "
+        "exactly), at the scale today's code gives the model (estimated again on "
+        "it; `map` applies the scale last, so mapping again gives the same model "
+        "at that scale). *scaled models*: those `map` could scale (it needs "
+        "triangulated keypoints of people with priors). *the priors' size*: the "
+        "median over the real people's views of their skeleton's size predicted "
+        "/ true (`colmap_vc.metric_scale.skeleton_ratio`, as `map` reads it: a "
+        "size error per person shared by its views, one per view, and what "
+        "another body's proportions and the joints' errors add: "
+        "docs/synthetic.md), the ratio if that were all. "
         "*uncertainty*: the relative standard "
         "error `map` reports with the scale (metric_scale.json: the people's shared "
         "size error, 7% per person, and the views' spread, and for two images "
@@ -412,9 +415,9 @@ def instants_section() -> None:
         f"Measured at commit {machine()['commit']} by `.venv/bin/python "
         "bench/metric_scale.py --instants` on the models of `bench/evidence.py "
         "--seeds` (each instant's 4 images mapped on their own, with each seed of "
-        "augment and the mapper): the ratio of camera distances as above, one per "
-        "model; *within 5%*: models whose ratio is within 0.95-1.05; uncertainty "
-        "and *truth within* as above.",
+        "augment and the mapper): the ratio of camera distances at today's scale "
+        "as above, one per model; *within 5%*: models whose ratio is within "
+        "0.95-1.05; uncertainty and *truth within* as above.",
     ]
     replace_section(
         DOCS / "results.md",

@@ -63,19 +63,22 @@ that person: two parts in quadrature.
   deviation of about 7 cm within each sex around 1.62-1.76 m, 4-4.5%, and
   about 5.5% over both.
 - The fit's own error that repeats over a person's views (another body's
-  proportions, the pose): 4.5% rms over the 17 people of the accuracy bench's
+  proportions, the pose): 3.9% rms over the 18 people of the accuracy bench's
   synthetic `fitted` domes and dense scenes, beyond the size drawn for them
-  (4.1% with `realistic` priors; docs/real-data.md, "Metric scale").
+  (1.7% with `realistic` priors; measured on the skeleton's size, as the scale
+  is read: by the distance from the camera they were 4.5% and 4.0%).
 
-sqrt(5.5^2 + 4.5^2) = 7.1%. Against the calibration, with the model's poses
-replaced by the calibrated ones, the bundled estimator's people come out: the
-pose2sim_single man 0.92-1.01 per instant (median 0.95), in pose2sim_multi one
-person 1.10-1.16 and the other 0.92-0.99: 8% rms over the two (their medians
-1.11 and 0.97). With 7% the truth is within one uncertainty in 25 of
-pose2sim_single's 30 per-instant models and 24 of pose2sim_multi's (18 and 22
-at 5%, stature alone), within two in all; on the synthetic scenes with
-`realistic` and `fitted` priors within one in 13 and two in 20 of 24 (12 and 16
-at 5%; docs/results.md, "Metric scale")."""
+sqrt(5.5^2 + 3.9^2) = 6.7%, taken as 7%: of the two real people measured, one
+is 16% off. Against the calibration, with the model's poses replaced by the
+calibrated ones, the bundled estimator's skeletons come out: the pose2sim_single
+man 0.99 of his size in the median of his views (0.93-1.06), in pose2sim_multi
+the same man 0.99 and the avatar 1.16 (1.06-1.22; docs/results.md, "The scale
+from the skeleton's size instead of its distance"). With 7% the truth is within
+one uncertainty in all 30 of pose2sim_single's per-instant models and in 6 of
+pose2sim_multi's 30 (within two in 25): there the man and the avatar average
++7.5%, 1.5 of the 5% two people give; on the twelve-draw synthetic domes with
+`realistic` and `fitted` priors within one in 34 and two in 46 of 48
+(docs/results.md, "Metric scale")."""
 
 TWO_VIEW_POSE_SD_DEG = 3.8
 """Standard deviation, per degree of freedom, of the relative pose of two images
