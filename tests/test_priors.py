@@ -172,7 +172,7 @@ def test_priors_of_images_the_database_lacks_are_ignored_and_listed(
 ) -> None:
     """Priors of a whole folder, a database of some of its images: the others are
     skipped, and the warning names them."""
-    with caplog.at_level(logging.WARNING, logger="colmap_vc.priors"):
+    with caplog.at_level(logging.WARNING, logger="colmap_vc.priors_format"):
         loaded = read_priors(priors_dir, known_image_names=["cam0.jpg"])
     assert set(loaded.images) == {"cam0.jpg"}
     message = caplog.text
@@ -243,7 +243,7 @@ def test_unknown_arrays_and_keys_warn(
     edit_npz(priors_dir / "images/cam0.jpg.npz", lambda d: d.update(p0_maks=[]))
     edit_npz(priors_dir / "images/cam0.jpg.npz", lambda d: d.update({"p0/maks": []}))
     edit_json(priors_dir, lambda doc: doc["images"]["cam0.jpg"].update(note="hi"))
-    with caplog.at_level(logging.WARNING, logger="colmap_vc.priors"):
+    with caplog.at_level(logging.WARNING, logger="colmap_vc.priors_format"):
         read_priors(priors_dir)
     assert "p0/maks" in caplog.text
     assert "image.note" in caplog.text
