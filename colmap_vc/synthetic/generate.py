@@ -24,56 +24,34 @@ their own random streams.
 
 from __future__ import annotations
 
-import dataclasses
 import json
 import logging
 import time
-from collections.abc import Sequence
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 
 import cv2
 import numpy as np
 import pycolmap
-from scipy.spatial import cKDTree
 
 from .. import __version__, outputs
 from ..priors import write_priors
 from ..structs import FloatArray, ImagePrior, ScenePriors
 from . import bodies as body_lib
 from .colmap_db import build_bare_database, build_sift_database, spec_camera
-from .detection import (
-    DETECTION_LEVELS,
-    false_person_view,
-    landmark_visibility,
-    miss_reason,
-    with_appearance,
-)
-from .gt import (
-    FALSE_DETECTION,
-    FALSE_ID_BASE,
-    GtPersons,
-    gt_persons_path,
-    write_gt_persons,
-)
+from .detection import DETECTION_LEVELS
+from .gt import FALSE_ID_BASE, GtPersons, gt_persons_path, write_gt_persons
 from .layout import (
-    CameraSpec,
     LayoutOptions,
-    PersonPlacement,
     Preset,
     SceneLayout,
     draw_people,
     instant_image_name,
     make_layout,
 )
-from .noise import (
-    NOISE_LEVELS,
-    NoiseLevel,
-    PersonView,
-    person_size_error,
-    predict_person,
-)
-from .render import FIRST_PERSON, RenderedView, World, build_world, render_view
+from .noise import NOISE_LEVELS, NoiseLevel, predict_person
+from .render import World, build_world, render_view
+from .views import Detections, detect, person_views, size_errors_of, write_surface_map
 
 logger = logging.getLogger(__name__)
 
@@ -154,165 +132,6 @@ def gt_reconstruction(layout: SceneLayout) -> pycolmap.Reconstruction:
             ),
         )
     return rec
-
-
-def _person_views(
-    view: RenderedView,
-    layout: SceneLayout,
-    posed: list[np.ndarray],
-    spec: CameraSpec,
-    world,
-) -> list[PersonView]:
-    """Ground truth of every person visible in a rendered view."""
-    out = []
-    for k, person in enumerate(layout.people):
-        mask = view.geom_idx == FIRST_PERSON + k
-        if not mask.any():
-            continue
-        rows, cols = np.nonzero(mask)
-        body_from_world = world.people[k].body_from_world
-        R_bw, t_bw = body_from_world[:, :3], body_from_world[:, 3]
-        world_from_body = np.concatenate([R_bw.T, (-R_bw.T @ t_bw)[:, None]], axis=1)
-        C = spec.cam_from_world
-        cam_from_body = np.concatenate(
-            [
-                C[:, :3] @ world_from_body[:, :3],
-                (C[:, :3] @ world_from_body[:, 3] + C[:, 3])[:, None],
-            ],
-            axis=1,
-        )
-        out.append(
-            PersonView(
-                person_id=person.person_id,
-                phenotype=person.phenotype,
-                pose=person.pose,
-                body_vertices=posed[k],
-                cam_from_body=cam_from_body,
-                xy_img=np.stack([cols, rows], axis=1) + 0.5,
-                face_idx=view.face_idx[rows, cols],
-                bary=view.bary[rows, cols],
-                mask=mask,
-            )
-        )
-    return out
-
-
-def _write_surface_map(
-    path: Path, views: list[PersonView], bodies: body_lib.BodyModel
-) -> int:
-    """gt/surface/<image>.npz: every person pixel with its surface point."""
-    if not views:
-        np.savez_compressed(
-            path,
-            xy=np.zeros((0, 2), np.float32),
-            person_id=np.zeros(0, np.int16),
-            face=np.zeros(0, np.int32),
-            bary=np.zeros((0, 3), np.float32),
-            template_idx=np.zeros(0, np.int32),
-        )
-        return 0
-    template_idx = []
-    for v in views:
-        rest = bodies.rest_vertices[v.phenotype]
-        samples = body_lib.surface_points(
-            bodies, rest, bodies.template_face_idx, bodies.template_bary
-        )
-        points = body_lib.surface_points(bodies, rest, v.face_idx, v.bary)
-        template_idx.append(cKDTree(samples).query(points)[1])
-    np.savez_compressed(
-        path,
-        xy=np.concatenate([v.xy_img for v in views]).astype(np.float32),
-        person_id=np.concatenate(
-            [np.full(len(v.xy_img), v.person_id) for v in views]
-        ).astype(np.int16),
-        face=np.concatenate([v.face_idx for v in views]).astype(np.int32),
-        bary=np.concatenate([v.bary for v in views]).astype(np.float32),
-        template_idx=np.concatenate(template_idx).astype(np.int32),
-    )
-    return sum(len(v.xy_img) for v in views)
-
-
-@dataclass(kw_only=True, slots=True)
-class _Detections:
-    """Predicted priors of one level and the ground truth of who they are."""
-
-    priors: dict[str, ImagePrior] = field(default_factory=dict)
-    true_ids: dict[str, list[int]] = field(default_factory=dict)
-    dropped: dict[str, dict[int, str]] = field(default_factory=dict)
-    num_false: int = 0
-    size_errors: dict[int, float] = field(default_factory=dict)
-    """Each true person's size error at this level, shared by its views."""
-
-
-def _size_errors(
-    level: NoiseLevel, seed: int, people: Sequence[PersonPlacement]
-) -> dict[int, float]:
-    """The size error of every person of the scene at ``level`` (person id: e)."""
-    model = NOISE_LEVELS[level]
-    return {p.person_id: person_size_error(model, seed, p.person_id) for p in people}
-
-
-def _detect(
-    out: _Detections,
-    bodies: body_lib.BodyModel,
-    views: list[PersonView],
-    view: RenderedView,
-    layout: SceneLayout,
-    image_name: str,
-    camera: pycolmap.Camera,
-    level: NoiseLevel,
-    rng: np.random.Generator,
-    with_ids: bool,
-) -> None:
-    """What a detector + prior network report in one image: some of the people, maybe
-    a false one, in random order, each with its noisy prior (anonymous unless
-    ``with_ids``)."""
-    model = DETECTION_LEVELS[level]
-    index_of = {p.person_id: k for k, p in enumerate(layout.people)}
-    kept: list[PersonView] = []
-    dropped: dict[int, str] = {}
-    for v in views:
-        vis = landmark_visibility(
-            bodies, v, camera, view.geom_idx, FIRST_PERSON + index_of[v.person_id]
-        )
-        reason = miss_reason(vis, model, rng)
-        if reason is None:
-            kept.append(v)
-        else:
-            dropped[v.person_id] = reason
-    if rng.random() < model.false_prob:
-        fake = false_person_view(bodies, camera, rng, person_id=FALSE_DETECTION)
-        if fake is not None:
-            kept.append(fake)
-    order = rng.permutation(len(kept))
-    persons, true_ids = [], []
-    for i in order:
-        predicted = predict_person(
-            bodies,
-            kept[i],
-            camera,
-            level,
-            rng,
-            size_error=out.size_errors.get(kept[i].person_id, 0.0),
-        )
-        if predicted is None:  # the estimator's fit failed: no one reported
-            if kept[i].person_id != FALSE_DETECTION:
-                dropped[kept[i].person_id] = "fit failed"
-            continue
-        person = with_appearance(predicted, view.image, bodies.joint_names)
-        true_id = kept[i].person_id
-        if not with_ids:
-            pid = None
-        elif true_id == FALSE_DETECTION:
-            pid = FALSE_ID_BASE + out.num_false
-            out.num_false += 1
-        else:
-            pid = true_id
-        persons.append(dataclasses.replace(person, person_id=pid))
-        true_ids.append(true_id)
-    out.priors[image_name] = ImagePrior(image_name=image_name, persons=tuple(persons))
-    out.true_ids[image_name] = true_ids
-    out.dropped[image_name] = dropped
 
 
 def build_database(out_dir: Path, layout: SceneLayout, options: SynthOptions) -> Path:
@@ -436,11 +255,11 @@ def generate(
     main_level = NoiseLevel(options.noise)
     extra = [NoiseLevel(level) for level in options.extra_noise]
     size_errors = {
-        level: _size_errors(level, options.seed, scene.people)
+        level: size_errors_of(level, options.seed, scene.people)
         for level in [main_level, *extra]
     }
-    pred = _Detections(size_errors=size_errors[main_level])
-    extra_pred = {level: _Detections(size_errors=size_errors[level]) for level in extra}
+    pred = Detections(size_errors=size_errors[main_level])
+    extra_pred = {level: Detections(size_errors=size_errors[level]) for level in extra}
     extra_rng = {
         level: np.random.default_rng(
             [options.seed, 1000 + list(NoiseLevel).index(level)]
@@ -465,9 +284,9 @@ def generate(
             )
             t2 = time.perf_counter()
             camera = spec_camera(spec, 1)
-            views = _person_views(view, instant, posed, spec, world)
+            views = person_views(view, instant, posed, spec, world)
             stem = Path(spec.name).stem
-            person_pixels[spec.name] = _write_surface_map(
+            person_pixels[spec.name] = write_surface_map(
                 out_dir / "gt/surface" / f"{stem}.npz", views, bodies
             )
             # Detector order is not identity order: shuffle the people per image.
@@ -481,7 +300,7 @@ def generate(
                 persons=tuple(p for p in clean if p is not None),
             )
             visible[spec.name] = sorted(v.person_id for v in views)
-            _detect(
+            detect(
                 pred,
                 bodies,
                 views,
@@ -494,7 +313,7 @@ def generate(
                 options.with_ids,
             )
             for level in extra:
-                _detect(
+                detect(
                     extra_pred[level],
                     bodies,
                     views,
