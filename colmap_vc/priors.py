@@ -64,10 +64,10 @@ def focal_mismatches(
     """Images whose priors were made with a focal length more than ``max_ratio``
     from their database camera's ``focal_px`` -> (the priors', the database's).
 
-    The meshes' depth, and so the people's size and the metric scale, follow the
-    focal length they were fitted with: priors made with COLMAP's guess (1.2
-    times the larger side) and mapped with a calibration are 10-50 % off.
-    Default 5 %: the metric scale's own target."""
+    The meshes' depth follows the focal length they were fitted with, and the
+    virtual correspondences cast through them follow it too: priors made with
+    COLMAP's guess (1.2 times the larger side) and mapped with a calibration put
+    the people 10-50 % off in depth. Default 5 %: the metric scale's own target."""
     out = {}
     for name, image in priors.images.items():  # loop over images
         if image.focal_px is None or name not in focal_px:

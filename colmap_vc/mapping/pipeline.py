@@ -184,7 +184,8 @@ def _map_copy(
         logger.warning(
             "%d of %d images have no known focal length (%s; COLMAP guessed it, "
             "1.2 times the larger side when neither the user nor EXIF gives one): "
-            "their people's depth is proportional to it, so the model stays at "
+            "their people's depth is proportional to it and a person's size "
+            "against the cameras' distances follows it, so the model stays at "
             "COLMAP's arbitrary scale, and their poses follow it too "
             "(pose2sim_single, each instant on its own: 12.7 deg median pair "
             "error with the guess, 2.3 with the calibration). Give the "
@@ -450,7 +451,8 @@ def _metric_scale(
 ) -> tuple[MetricScale | None, str]:
     """Scale ``rec`` to metres from the people's size (in place) -> the estimate,
     or None and why not. Not where a registered image's focal length is a
-    guess: the people's depth follows it (the warning at the start says so)."""
+    guess: a person's size against the cameras' distances follows it (the
+    warning at the start says so)."""
     if rec is None or not options.metric_scale:
         return None, ""
     registered = {im.name for im in rec.images.values() if im.has_pose}
