@@ -45,12 +45,10 @@ import pycolmap
 from common import DOCS, OUT, machine, replace_section, scene_is_current, write_json
 from metric_scale import SHARED, _largest, load_calibration
 
-from colmap_vc import database
-from colmap_vc import metric_scale as ms
 from colmap_vc.evaluation import camera_distance_ratio, poses_by_name
-from colmap_vc.keypoint_tracks import keypoint_tracks, triangulate_tracks
 from colmap_vc.mapping import MappingOptions
 from colmap_vc.mapping.inputs import read_inputs
+from colmap_vc.metric_scale import hodges_lehmann, person_keypoints, skeleton_ratio
 
 logger = logging.getLogger(__name__)
 
@@ -62,30 +60,17 @@ def person_scales(
     database_path: Path, rec: pycolmap.Reconstruction
 ) -> tuple[dict[str, dict[tuple[int, int], float]], dict[int, np.ndarray]]:
     """Per way, the scale each (image id, identity) gives (metres per model unit),
-    and each identity's centroid of triangulated keypoints (model frame). The
-    observations are those `colmap_vc.metric_scale.estimate_metric_scale` uses
-    (its private helpers, so that the keypoints are the same)."""
+    and each identity's centroid of triangulated keypoints (model frame), on the
+    keypoints `map`'s scale uses (``person_keypoints``)."""
     priors = read_inputs(database_path, MappingOptions(), None).priors
-    views = database.read_views(database_path)
-    name_of = dict(zip(views.image_ids.tolist(), views.image_names, strict=True))
-    registered = np.array(
-        sorted(i for i, im in rec.images.items() if im.has_pose and i in name_of),
-        dtype=np.int64,
-    )
-    tracks = keypoint_tracks(database_path, registered)
-    run = database.read_run_info(database_path).get("options", {})
-    offset = int(run.get("matching", {}).get("num_samples", 0))
-    X, counts = triangulate_tracks(rec, tracks)
-    longest = int(counts.max()) if len(counts) else 0
-    min_length = min(3, max(len(registered), 2), max(longest, 2))
-    good = (counts[tracks.track] >= min_length) & np.isfinite(X[tracks.track]).all(1)
-    assert priors is not None and tracks.keys is not None
-    views_of = ms._person_views(tracks, good, priors, name_of, offset)
+    assert priors is not None
+    found = person_keypoints(database_path, rec, priors)
     out: dict[str, dict[tuple[int, int], float]] = {w: {} for w in WAYS}
-    out["skeleton"] = ms._ratios(rec, tracks, X, views_of)
     centre: dict[int, np.ndarray] = {}
-    for (image_id, ident), (obs, P, _) in views_of.items():  # loop over views
-        M = X[tracks.track[obs]]
+    if found is None:
+        return out, centre
+    for (image_id, ident), (obs, P, _) in found.views.items():  # loop over views
+        M = found.points[found.tracks.track[obs]]
         centre[ident] = M.mean(axis=0)
         T = rec.image(image_id).cam_from_world().matrix()
         d_model = np.linalg.norm(M @ T[:, :3].T + T[:, 3], axis=1)
@@ -93,6 +78,7 @@ def person_scales(
             np.median(np.linalg.norm(P, axis=1) / d_model)
         )
         if len(P) >= 2:
+            out["skeleton"][(image_id, ident)] = skeleton_ratio(P, M)
             out["radius"][(image_id, ident)] = radius(P) / radius(M)
     return out, centre
 
@@ -103,7 +89,7 @@ def radius(Y: np.ndarray) -> float:
 
 
 def combined(values: dict[tuple[int, int], float]) -> float:
-    return ms.hodges_lehmann(np.array(list(values.values()))) if values else np.nan
+    return hodges_lehmann(np.array(list(values.values()))) if values else np.nan
 
 
 def models() -> Iterator[tuple[str, str, pycolmap.Reconstruction, Path, float]]:

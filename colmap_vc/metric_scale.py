@@ -170,30 +170,13 @@ def estimate_metric_scale(
     its people alone: :data:`TWO_VIEW_POSE_SD_DEG`) adds the relative pose's
     part to the uncertainty.
     """
-    database_path = Path(database_path)
-    views = database.read_views(database_path)
-    name_of = dict(zip(views.image_ids.tolist(), views.image_names, strict=True))
-    registered = np.array(
-        sorted(i for i, im in rec.images.items() if im.has_pose and i in name_of),
-        dtype=np.int64,
-    )
-    tracks = keypoint_tracks(database_path, registered)
-    run = database.read_run_info(database_path).get("options", {})
-    offset = int(run.get("matching", {}).get("num_samples", 0)) if run else 0
-    if tracks.num_tracks == 0 or tracks.keys is None or offset <= 0:
+    found = person_keypoints(database_path, rec, priors, min_track_length)
+    if found is None:
         return None
-    X, counts = triangulate_tracks(rec, tracks)
-    # Static cameras with uneven instants: three cameras, no instant seen by more
-    # than two; the longest tracks there are, two views at least, are used.
-    longest = int(counts.max()) if len(counts) else 0
-    min_track_length = min(min_track_length, max(len(registered), 2), max(longest, 2))
-    good = (counts[tracks.track] >= min_track_length) & np.isfinite(
-        X[tracks.track]
-    ).all(axis=1)
-    person_views = _person_views(tracks, good, priors, name_of, offset)
-    ratios = _ratios(rec, tracks, X, person_views)
+    ratios = _ratios(found.tracks, found.points, found.views)
     if not ratios:
         return None
+    name_of, person_views, tracks = found.name_of, found.views, found.tracks
     instants = {  # identity -> its instant ("": one instant)
         ident: (instant_of or {}).get((name_of[image_id], k), "")
         for (image_id, ident), (_, _, k) in person_views.items()
@@ -210,12 +193,10 @@ def estimate_metric_scale(
         effective_people(counts, [instants[k] for k in people.tolist()]),
     )
     pose = 0.0
-    if relative_pose_sd_deg is not None and len(registered) == 2:
+    if relative_pose_sd_deg is not None and found.num_registered == 2:
 
         def scale_of(model: pycolmap.Reconstruction) -> float:
-            again = _ratios(
-                model, tracks, triangulate_tracks(model, tracks)[0], person_views
-            )
+            again = _ratios(tracks, triangulate_tracks(model, tracks)[0], person_views)
             return hodges_lehmann(np.array(list(again.values()))) if again else np.nan
 
         pose = relative_pose_uncertainty(rec, scale_of, relative_pose_sd_deg)
@@ -229,13 +210,68 @@ def estimate_metric_scale(
     )
 
 
+PersonViews = dict[tuple[int, int], tuple[IndexArray, FloatArray, int]]
+"""Per (image id, identity) with a prior person: its observations (indices into
+the tracks), the prior's 3D point of each (camera frame, metres) and the prior
+person's index in its image."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class PersonKeypoints:
+    """The people's keypoints of a model: in the priors and triangulated."""
+
+    tracks: KeypointTracks
+    points: FloatArray  # (num_tracks, 3) each track's point (model frame)
+    views: PersonViews
+    name_of: dict[int, str]  # image id -> name
+    num_registered: int
+
+
+def person_keypoints(
+    database_path: Path,
+    rec: pycolmap.Reconstruction,
+    priors: ScenePriors,
+    min_track_length: int = 3,
+) -> PersonKeypoints | None:
+    """The keypoints of ``rec``'s people that a prior places and the model
+    triangulates from at least ``min_track_length`` registered images (fewer
+    where the model has fewer, or no track is longer: static cameras with uneven
+    instants, three cameras and no instant seen by more than two). None without
+    keypoint tracks."""
+    database_path = Path(database_path)
+    views = database.read_views(database_path)
+    name_of = dict(zip(views.image_ids.tolist(), views.image_names, strict=True))
+    registered = np.array(
+        sorted(i for i, im in rec.images.items() if im.has_pose and i in name_of),
+        dtype=np.int64,
+    )
+    tracks = keypoint_tracks(database_path, registered)
+    run = database.read_run_info(database_path).get("options", {})
+    offset = int(run.get("matching", {}).get("num_samples", 0)) if run else 0
+    if tracks.num_tracks == 0 or tracks.keys is None or offset <= 0:
+        return None
+    X, counts = triangulate_tracks(rec, tracks)
+    longest = int(counts.max()) if len(counts) else 0
+    min_track_length = min(min_track_length, max(len(registered), 2), max(longest, 2))
+    good = (counts[tracks.track] >= min_track_length) & np.isfinite(
+        X[tracks.track]
+    ).all(axis=1)
+    return PersonKeypoints(
+        tracks=tracks,
+        points=X,
+        views=_person_views(tracks, good, priors, name_of, offset),
+        name_of=name_of,
+        num_registered=len(registered),
+    )
+
+
 def _person_views(
     tracks: KeypointTracks,
     good: BoolArray,
     priors: ScenePriors,
     name_of: Mapping[int, str],
     offset: int,
-) -> dict[tuple[int, int], tuple[IndexArray, FloatArray, int]]:
+) -> PersonViews:
     """Per (image id, identity) with a prior person: the ``good`` observations of
     its keypoints that the prior places (indices into ``tracks``), the prior's
     3D point of each (camera frame, metres), and the prior person's index."""
@@ -268,10 +304,7 @@ def _person_views(
 
 
 def _ratios(
-    rec: pycolmap.Reconstruction,
-    tracks: KeypointTracks,
-    X: FloatArray,
-    person_views: Mapping[tuple[int, int], tuple[IndexArray, FloatArray, int]],
+    tracks: KeypointTracks, X: FloatArray, person_views: PersonViews
 ) -> dict[tuple[int, int], float]:
     """Per (image id, identity) with two keypoints or more: the skeleton's size
     in the prior over the model's (``X``: the tracks' points), the median over
