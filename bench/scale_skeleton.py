@@ -43,6 +43,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 from common import DOCS, OUT, machine, replace_section, scene_is_current, write_json
+from evidence import ARMS
 from metric_scale import SHARED, _largest, load_calibration
 
 from colmap_vc.evaluation import camera_distance_ratio, poses_by_name
@@ -54,6 +55,8 @@ logger = logging.getLogger(__name__)
 
 WAYS = ("distance", "skeleton", "radius")
 AVATAR_M = 0.5
+MAP_ARM = f"arm{list(ARMS).index('keypoints + surface + up (`map`)')}"
+"""`bench/evidence.py --seeds`'s folder of the default `map`'s models."""
 
 
 def person_scales(
@@ -130,7 +133,7 @@ def models() -> Iterator[tuple[str, str, pycolmap.Reconstruction, Path, float]]:
         yield row, run.name, found[0], run / "default" / "database.db", ratio
     for ds in ("single", "multi"):
         _, gt = load_calibration(SHARED / f"pose2sim_{ds}")
-        for d in sorted((OUT / "evidence_seeds" / ds / "arm0").glob("seed*/t*")):
+        for d in sorted((OUT / "evidence_seeds" / ds / MAP_ARM).glob("seed*/t*")):
             found = _largest(d)
             where = "order0" if d.parent.name == "seed0" else d.parent.name
             db = OUT / "realdata" / ds / d.name / where / "database.db"
@@ -169,7 +172,7 @@ def per_person_calibrated() -> dict[str, dict[str, list[float]]]:
     man_at: dict[str, np.ndarray] = {}
     for ds in ("single", "multi"):
         _, gt = load_calibration(SHARED / f"pose2sim_{ds}")
-        for d in sorted((OUT / "evidence_seeds" / ds / "arm0" / "seed0").glob("t*")):
+        for d in sorted((OUT / "evidence_seeds" / ds / MAP_ARM / "seed0").glob("t*")):
             found = _largest(d)
             db = OUT / "realdata" / ds / d.name / "order0" / "database.db"
             if found is None or not db.exists():

@@ -12,8 +12,8 @@ robust mean over them (Hodges-Lehmann).
 The skeleton's size, not how far the prior puts it from the camera: a fit from one
 image reads a body's size from its proportions and then places it by reprojection,
 and the placement adds an error of its own. Against the calibration, the bundled
-estimator puts pose2sim's man 4-5% nearer than his fitted size says, and the
-avatar of pose2sim_multi 3% nearer; the skeleton's size is within 1-2% of the
+estimator puts pose2sim's man 4% nearer than his fitted size says, and the
+avatar of pose2sim_multi 3% nearer; the skeleton's size is within 1% of the
 man's (docs/results.md, "The scale from the skeleton's size instead of its
 distance"). Until 2026-11 the scale was the ratio of distances from the camera.
 
@@ -71,7 +71,7 @@ that person: two parts in quadrature.
 sqrt(5.5^2 + 3.9^2) = 6.7%, taken as 7%: of the two real people measured, one
 is 16% off. Against the calibration, with the model's poses replaced by the
 calibrated ones, the bundled estimator's skeletons come out: the pose2sim_single
-man 0.99 of his size in the median of his views (0.93-1.06), in pose2sim_multi
+man 1.00 of his size in the median of his views (0.96-1.11), in pose2sim_multi
 the same man 0.99 and the avatar 1.16 (1.06-1.22; docs/results.md, "The scale
 from the skeleton's size instead of its distance"). With 7% the truth is within
 one uncertainty in all 30 of pose2sim_single's per-instant models and in 6 of
