@@ -15,7 +15,7 @@ and the placement adds an error of its own. Against the calibration, the bundled
 estimator puts pose2sim's man 4% nearer than his fitted size says, and the
 avatar of pose2sim_multi 3% nearer; the skeleton's size is within 1% of the
 man's (docs/results.md, "The scale from the skeleton's size instead of its
-distance"). Until 2026-11 the scale was the ratio of distances from the camera.
+distance"; before 21c2a2e `map` read the ratio of distances).
 
 What limits it is the body size a fit assumes from 2D evidence: a person fitted 5%
 too tall is 5% too large in every view, so the error is shared by a person's views
