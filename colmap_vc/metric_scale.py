@@ -26,8 +26,8 @@ over how many identities it was taken. The scale's uncertainty
 is only as good as that person is close to the size the fit assumes.
 
 On pose2sim_single (one real person, four cameras, five instants) the camera
-distances come out within 1% of the calibration, on pose2sim_multi 8% long: there
-the avatar's fit is 15% larger than she is and the man's 2% smaller. Real fits err
+distances come out within 1% of the calibration, on pose2sim_multi 7-8% long: there
+the avatar's fit is 16% larger than she is and the man's within 1%. Real fits err
 per person, so the scale is as good as the people's average size. The synthetic
 priors err the same way (a size error per person, shared by its views, and a
 smaller one per view: docs/synthetic.md).
