@@ -103,17 +103,33 @@ class MetricScale:
     # (scale_uncertainty) and the relative pose's part, in quadrature
     relative_pose: float = 0.0  # the relative pose's part (two images placed by
     # their people alone; 0 otherwise): relative_pose_uncertainty
+    num_instants: int = 1  # static cameras: the instants the identities stood at
+    people_per_instant: int = 0  # the most identities at one instant (static
+    # cameras: the people of different instants may be one person; 0: not known)
 
     def describe(self) -> str:
-        """The uncertainty as the CLI and the report print it: "+-5.0% (10
-        people)", with the relative pose's part where there is one."""
-        people = "person" if self.num_people == 1 else "people"
+        """The uncertainty as the CLI and the report print it: "+-5.0% (3
+        people)", with the relative pose's part where there is one (static
+        cameras: :meth:`people`)."""
         pose = (
             f", the relative pose +-{100 * self.relative_pose:.1f}%"
             if self.relative_pose
             else ""
         )
-        return f"+-{100 * self.uncertainty:.1f}% ({self.num_people} {people}{pose})"
+        who = self.people()
+        return f"+-{100 * self.uncertainty:.1f}% ({who}{pose})"
+
+    def people(self) -> str:
+        """Whom the scale rests on: "3 people"; static cameras "5 identities
+        over 5 instants, taken as 1 person" (the people of different instants
+        may be one person; the uncertainty counts the most at one instant)."""
+        if self.num_instants > 1 and self.people_per_instant:
+            n = self.people_per_instant
+            return (
+                f"{self.num_people} identities over {self.num_instants} instants, "
+                f"taken as {n} {'person' if n == 1 else 'people'}"
+            )
+        return f"{self.num_people} {'person' if self.num_people == 1 else 'people'}"
 
 
 def scale_uncertainty(spread: float, num_person_views: int, num_people: float) -> float:
@@ -187,10 +203,11 @@ def estimate_metric_scale(
     spread = relative_spread(values, scale)
     person = np.array([ident for _, ident in ratios], dtype=np.int64)
     people, counts = np.unique(person, return_counts=True)
+    when = [instants[k] for k in people.tolist()]
     sizes = scale_uncertainty(
         within_person_spread(values, person),
         len(values),
-        effective_people(counts, [instants[k] for k in people.tolist()]),
+        effective_people(counts, when),
     )
     pose = 0.0
     if relative_pose_sd_deg is not None and found.num_registered == 2:
@@ -207,6 +224,8 @@ def estimate_metric_scale(
         num_people=len(counts),
         uncertainty=float(np.hypot(sizes, pose)),
         relative_pose=pose,
+        num_instants=len(set(when)),
+        people_per_instant=max(when.count(t) for t in set(when)),
     )
 
 

@@ -21,6 +21,7 @@ from colmap_vc.metric_scale import (
     skeleton_ratio,
     weighted_median,
     within_person_spread,
+    write_metric_scale,
 )
 
 
@@ -262,3 +263,26 @@ def test_describe_gives_the_uncertainty_people_and_relative_pose() -> None:
         relative_pose=0.142,
     )
     assert pair.describe() == "+-15.0% (3 people, the relative pose +-14.2%)"
+
+
+def test_static_cameras_identities_are_not_called_people(tmp_path: Path) -> None:
+    # One man filmed at five instants: five identities, one person's size error.
+    man = MetricScale(
+        scale=1.2,
+        spread=0.02,
+        num_person_views=20,
+        num_people=5,
+        uncertainty=0.07,
+        num_instants=5,
+        people_per_instant=1,
+    )
+    assert man.describe() == (
+        "+-7.0% (5 identities over 5 instants, taken as 1 person)"
+    )
+    write_metric_scale(tmp_path, man)
+    assert read_metric_scale(tmp_path) == man
+    # A file written before these fields: one instant, its identities as people.
+    old = {"scale": 0.8, "spread": 0.02, "num_person_views": 8, "num_people": 2}
+    (tmp_path / "metric_scale.json").write_text(json.dumps(old))
+    read = read_metric_scale(tmp_path)
+    assert read is not None and read.describe().endswith("(2 people)")

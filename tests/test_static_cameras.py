@@ -13,6 +13,7 @@ from conftest import extract_database
 from colmap_vc import cli, database
 from colmap_vc.evaluation import camera_distance_ratio
 from colmap_vc.mapping.outputs import static_members_left_out
+from colmap_vc.metric_scale import read_metric_scale
 from colmap_vc.priors import read_priors, write_priors
 from colmap_vc.static_cameras import (
     merge_priors,
@@ -235,7 +236,15 @@ def test_uneven_instants_are_scaled_to_metres(dome_scene: Path, tmp_path: Path) 
     )
     poses = _map_poses(db, images, tmp_path / "sparse")
     assert sorted(poses) == all_names
-    assert (tmp_path / "sparse" / "0" / "metric_scale.json").exists()
+    scale = read_metric_scale(tmp_path / "sparse" / "0")
+    # The people of different instants may be one person: the scale says how
+    # many identities it read and how many people it takes them for.
+    assert scale is not None and scale.num_instants >= 2
+    assert scale.people_per_instant < scale.num_people
+    n = scale.people_per_instant
+    assert f"identities over {scale.num_instants} instants, taken as {n}" in (
+        scale.describe()
+    )
     for t in ("_t2", "_t3"):  # the same camera at every instant
         truth.update({n.replace(".jpg", f"{t}.jpg"): truth[n] for n in (a, b, c)})
     assert camera_distance_ratio(poses, truth) == pytest.approx(1.0, abs=0.15)

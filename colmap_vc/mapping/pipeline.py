@@ -471,12 +471,11 @@ def _metric_scale(
         return None, why
     apply_metric_scale_inplace(rec, scale)
     logger.info(
-        "metric scale: x%.4f to metres, +-%.1f%% (the people's size, %d "
-        "%s; their %d views spread %.1f%%%s)",
+        "metric scale: x%.4f to metres, +-%.1f%% (the people's size, %s; their "
+        "%d views spread %.1f%%%s)",
         scale.scale,
         100 * scale.uncertainty,
-        scale.num_people,
-        "person" if scale.num_people == 1 else "people",
+        scale.people(),
         scale.num_person_views,
         100 * scale.spread,
         f"; the two images' relative pose +-{100 * scale.relative_pose:.1f}%"
