@@ -45,6 +45,7 @@ import pycolmap
 from common import DOCS, OUT, machine, replace_section, scene_is_current, write_json
 from evidence import ARMS
 from metric_scale import SHARED, _largest, load_calibration
+from static_ceiling import posed_copy
 
 from colmap_vc.evaluation import camera_distance_ratio, poses_by_name
 from colmap_vc.mapping import MappingOptions
@@ -151,20 +152,6 @@ def models() -> Iterator[tuple[str, str, pycolmap.Reconstruction, Path, float]]:
             yield row, sparse.parent.name, rec, where / "database.db", ratio
 
 
-def calibrated(
-    rec: pycolmap.Reconstruction, gt: dict[str, np.ndarray]
-) -> pycolmap.Reconstruction:
-    """A copy of ``rec`` with the calibration's poses (metres, its world)."""
-    out = pycolmap.Reconstruction(rec)
-    for image in out.images.values():
-        if image.has_pose and image.name in gt:
-            T = gt[image.name]
-            out.frame(image.frame_id).rig_from_world = pycolmap.Rigid3d(
-                pycolmap.Rotation3d(T[:, :3]), T[:, 3]
-            )
-    return out
-
-
 def per_person_calibrated() -> dict[str, dict[str, list[float]]]:
     """pose2sim's seed-0 per-instant models with the calibration's poses: per
     person (the man, the avatar) and way, the scale of each (image, person)."""
@@ -177,7 +164,9 @@ def per_person_calibrated() -> dict[str, dict[str, list[float]]]:
             db = OUT / "realdata" / ds / d.name / "order0" / "database.db"
             if found is None or not db.exists():
                 continue
-            scales, centre = person_scales(db, calibrated(found[0], gt))
+            scales, centre = person_scales(
+                db, posed_copy(found[0], set(found[0].reg_image_ids()), gt)
+            )
             for ident, c in centre.items():  # loop over a few people
                 if ds == "single":
                     man_at[d.name] = c
