@@ -46,7 +46,12 @@ import pycolmap
 from scipy.spatial.transform import Rotation
 
 from . import database
-from .keypoint_tracks import KeypointTracks, keypoint_tracks, triangulate_tracks
+from .keypoint_tracks import (
+    KeypointTracks,
+    keypoint_tracks,
+    person_identities,
+    triangulate_tracks,
+)
 from .structs import BoolArray, FloatArray, IndexArray, PersonPrior, ScenePriors
 
 logger = logging.getLogger(__name__)
@@ -275,10 +280,11 @@ def person_keypoints(
     good = (counts[tracks.track] >= min_track_length) & np.isfinite(
         X[tracks.track]
     ).all(axis=1)
+    identity = person_identities(database.read_person_associations(database_path))
     return PersonKeypoints(
         tracks=tracks,
         points=X,
-        views=_person_views(tracks, good, priors, name_of, offset),
+        views=_person_views(tracks, good, priors, name_of, offset, identity),
         name_of=name_of,
         num_registered=len(registered),
     )
@@ -290,10 +296,13 @@ def _person_views(
     priors: ScenePriors,
     name_of: Mapping[int, str],
     offset: int,
+    identity: Mapping[tuple[int, int], int],
 ) -> PersonViews:
     """Per (image id, identity) with a prior person: the ``good`` observations of
     its keypoints that the prior places (indices into ``tracks``), the prior's
-    3D point of each (camera frame, metres), and the prior person's index."""
+    3D point of each (camera frame, metres), and the prior person's index.
+    ``identity``: (image id, database person id) -> identity
+    (:func:`~colmap_vc.keypoint_tracks.person_identities`)."""
     assert tracks.keys is not None
     out = {}
     for image_id in np.unique(tracks.image_id[good]):  # loop over images
@@ -306,7 +315,17 @@ def _person_views(
         for ident in np.unique(keys[:, 0]):  # loop over the image's people
             rows = keys[:, 0] == ident
             j = keys[rows, 1] - offset
-            k = _prior_person(persons, j, tracks.xy_img[obs[rows]])
+            rank = [  # how surely the database names each person: by its
+                # index (anonymous), by its own id, not at all (_prior_person)
+                0
+                if identity.get((int(image_id), k)) == ident
+                else 1
+                if p.person_id is not None
+                and identity.get((int(image_id), p.person_id)) == ident
+                else 2
+                for k, p in enumerate(persons)
+            ]
+            k = _prior_person(persons, j, tracks.xy_img[obs[rows]], rank)
             if k is None:
                 continue
             p = persons[k]
@@ -424,13 +443,24 @@ def effective_people(counts: IndexArray, instants: Sequence[str]) -> float:
 
 
 def _prior_person(
-    persons: Sequence[PersonPrior], j: IndexArray, xy: FloatArray
+    persons: Sequence[PersonPrior],
+    j: IndexArray,
+    xy: FloatArray,
+    rank: Sequence[int] | None = None,
 ) -> int | None:
     """The index of the prior person whose keypoints ``j`` are at ``xy``: a VC
-    keypoint is its prior's 2D keypoint, and the database's person id is the
-    prior's own id where it has one, not its index. None: no such person (or it
-    has no 3D keypoints)."""
-    for k, p in enumerate(persons):  # loop over the image's people (a handful)
+    keypoint is its prior's 2D keypoint. None: no such person (or it has no 3D
+    keypoints).
+
+    Several people can have the same keypoints: a static camera's view holds
+    every instant's people, and a person who stood still, or a repeated video
+    frame, is detected where they were. The people are tried in the order of
+    ``rank`` (a stable sort; 0 first): how surely the database names each one.
+    Its person id is the prior's index for an anonymous person (whose prior
+    `map` may since have given an identity) and the prior's own id otherwise."""
+    order = sorted(range(len(persons)), key=lambda k: rank[k] if rank else 0)
+    for k in order:  # loop over the image's people (a handful)
+        p = persons[k]
         if p.keypoints_xy is None or p.keypoints_cam is None:
             continue
         if len(j) and (j.min() < 0 or j.max() >= len(p.keypoints_xy)):
