@@ -15,6 +15,7 @@ from colmap_vc.metric_scale import (
     MetricScale,
     effective_people,
     hodges_lehmann,
+    people_disagreement,
     read_metric_scale,
     relative_pose_uncertainty,
     scale_uncertainty,
@@ -137,6 +138,51 @@ def test_people_of_different_instants_may_be_one_person() -> None:
     assert effective_people(np.array([4] * 5), list("abcde")) == pytest.approx(1.0)
     # Two people at each of two instants: two sizes, not four.
     assert effective_people(np.array([4, 4, 4, 4]), list("aabb")) == pytest.approx(2)
+
+
+def test_people_who_disagree_beyond_their_size_error_widen_the_uncertainty() -> None:
+    person = np.r_[np.zeros(4), np.ones(4)].astype(np.int64)
+    # One person: nothing to disagree with.
+    assert people_disagreement(np.full(4, 1.3), person[:4], 0.01) == 1.0
+    # Two people 5% apart: within a 7% size error each, not widened.
+    agree = np.r_[np.full(4, 1.0), np.full(4, 1.05)]
+    assert people_disagreement(agree, person, 0.0) == 1.0
+    # 17% apart (pose2sim_multi's man and avatar): chi^2 of one degree of
+    # freedom is d^2 / (2 var), the Birge ratio its root.
+    far = np.r_[np.full(4, 1.0), np.full(4, 1.17)]
+    var = PERSON_SIZE_SD**2 + 0.02**2 / 4
+    assert people_disagreement(far, person, 0.02) == pytest.approx(
+        np.log(1.17) / np.sqrt(2 * var)
+    )
+    # Each person's scale is the median of its views': one wild view of four
+    # does not make two people who agree disagree.
+    wild = agree.copy()
+    wild[0] = 3.0
+    assert people_disagreement(wild, person, 0.0) == 1.0
+    # Static cameras: one person at each of two instants may be one person, so
+    # two identities 17% apart are not two people who disagree...
+    assert people_disagreement(far, person, 0.02, {0: "t1", 1: "t2"}) == 1.0
+    # ...while two people at each of two instants disagree within each instant.
+    four = np.r_[far, far]
+    both = np.repeat(np.arange(4), 4)
+    when = {0: "t1", 1: "t1", 2: "t2", 3: "t2"}
+    assert people_disagreement(four, both, 0.02, when) == pytest.approx(
+        np.log(1.17) / np.sqrt(2 * var)
+    )
+
+
+def test_describe_says_when_the_people_disagree() -> None:
+    two = MetricScale(
+        scale=1.0,
+        spread=0.08,
+        num_person_views=8,
+        num_people=2,
+        uncertainty=0.079,
+        disagreement=1.58,
+    )
+    assert two.describe() == (
+        "+-7.9% (2 people, widened x1.6: they disagree on the size)"
+    )
 
 
 def test_a_scale_file_without_uncertainty_gets_it_from_its_fields(
