@@ -22,7 +22,11 @@ same run:
   (COLMAP's guess, f = 1.2 times the larger side, as for frames without EXIF):
   `map` then warns and keeps COLMAP's arbitrary scale.
 
-    .venv/bin/python bench/robustness.py [--variants original half ...]   (~6 min)
+    .venv/bin/python bench/robustness.py [--variants original half ...]   (~15 min)
+
+Each instant also gives the metric scale `map` put on its model: its camera
+distances over the calibration's, and whether the uncertainty `map` reported
+covers the truth.
 
 Writes bench/out/robustness.json and the "robustness" section of docs/results.md.
 """
@@ -41,7 +45,17 @@ import cv2
 import numpy as np
 import pycolmap
 from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
-from realdata import INSTANTS, SHARED, load_calibration, pooled, run_instant
+from realdata import (
+    INSTANTS,
+    SHARED,
+    _largest_model,
+    load_calibration,
+    pooled,
+    run_instant,
+)
+
+from colmap_vc.evaluation import camera_distance_ratio, poses_by_name
+from colmap_vc.metric_scale import read_metric_scale
 
 logger = logging.getLogger("bench.robustness")
 
@@ -154,7 +168,7 @@ def run_variant(name: str) -> dict:
     known = {n: camera_of(c) for n, c in cameras.items()}
     t0 = time.perf_counter()
     cams = sorted({n.split("_")[0] for n in gt})
-    metrics = []
+    metrics, scales = [], []
     for instant in INSTANTS:
         names = [f"{c}_{instant}.jpg" for c in cams]
         priors = work / instant / "priors"
@@ -162,9 +176,11 @@ def run_variant(name: str) -> dict:
             shutil.rmtree(priors)  # new photos, new priors
         m, _ = run_instant(data, names, known, gt, work / instant, priors)
         metrics.append(m)
+        scales.append(_scale(work / instant / "sparse", gt))
         logger.info("%s %s: AUC@15 %.1f", name, instant, m.auc["15"])
     out = pooled(metrics)
     out["per_instant"] = [round(m.auc["15"], 1) for m in metrics]
+    out["scale"] = scales
     stored = cv2.IMREAD_COLOR | cv2.IMREAD_IGNORE_ORIENTATION  # as COLMAP reads
     h, w = cv2.imread(str(images / names[0]), stored).shape[:2]
     out["size"] = [w, h]
@@ -172,19 +188,47 @@ def run_variant(name: str) -> dict:
     return out
 
 
+def _scale(sparse: Path, gt: dict[str, np.ndarray]) -> dict:
+    """The metric scale `map` wrote with its model (``sparse/0``): the model's
+    camera distances over the calibration's (``ratio``; arbitrary where `map`
+    kept COLMAP's scale) and the uncertainty it reported (None: no scale)."""
+    rec = _largest_model(sparse)
+    pred = {} if rec is None else poses_by_name(rec)
+    scale = read_metric_scale(sparse / "0") if rec is not None else None
+    return {
+        "ratio": camera_distance_ratio(pred, gt),
+        "uncertainty": None if scale is None else scale.uncertainty,
+    }
+
+
+def _scale_cells(scales: list[dict]) -> tuple[str, str]:
+    """(per instant ratios, truth within one / two uncertainties) for the table."""
+    if not scales or any(s["uncertainty"] is None for s in scales):
+        return "none (scale arbitrary)", "-"
+    ratios = [s["ratio"] for s in scales]
+    z = [abs(np.log(s["ratio"])) / s["uncertainty"] for s in scales]
+    return (
+        " ".join(f"{r:.3f}" for r in ratios),
+        f"{sum(x <= 1 for x in z)} / {sum(x <= 2 for x in z)} of {len(z)}",
+    )
+
+
 def table(results: dict) -> str:
     lines = [
         "| photos | size | registered | AUC@15 | AUC@30 | AUC@45 | median pair "
-        "error (deg) | per instant AUC@15 |",
-        "|---|---|---|---|---|---|---|---|",
+        "error (deg) | per instant AUC@15 | camera distances / calibration, "
+        "per instant | truth within 1 / 2 scale uncertainties |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
     for name, r in results.items():
         a = r["auc"]
+        ratios, within = _scale_cells(r.get("scale", []))
         lines.append(
             f"| {name} | {r['size'][0]} x {r['size'][1]} | {r['registered']}/"
             f"{r['images']} | {a['15']:.1f} | {a['30']:.1f} | {a['45']:.1f} | "
             f"{r['median_error_deg']:.2f} | "
-            f"{' '.join(f'{x:.0f}' for x in r['per_instant'])} |"
+            f"{' '.join(f'{x:.0f}' for x in r['per_instant'])} | {ratios} | "
+            f"{within} |"
         )
     return "\n".join(lines)
 
@@ -219,7 +263,11 @@ def main() -> None:
         "6); jpeg95: decoded and saved again at quality 95; grey: single-channel "
         "JPEGs; guessed: the original photos in a database made without their "
         "intrinsics (COLMAP's guess, f = 1.2 times the larger side: 2304 px "
-        "against the calibration's 1674-1682). "
+        "against the calibration's 1674-1682). Camera distances / calibration: "
+        "the median over camera pairs of the model's distance between two cameras "
+        "over the calibration's, each instant's model at the metric scale `map` "
+        "gave it from the people; truth within: instants whose |log ratio| is at "
+        "most one and two of the uncertainty `map` reported with the scale. "
         f"Measured at commit {info['commit']} by `.venv/bin/python "
         f"bench/robustness.py` ({seconds / 60:.0f} min); raw numbers in "
         "`bench/out/robustness.json`.",
