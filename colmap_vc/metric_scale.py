@@ -23,7 +23,9 @@ and averages out only over different people. The reported spread is that of the
 (image, person) ratios (a robust standard deviation, relative); ``num_people`` says
 over how many identities it was taken. The scale's uncertainty
 (:func:`scale_uncertainty`) adds the size error the views share: one person's fit
-is only as good as that person is close to the size the fit assumes.
+is only as good as that person is close to the size the fit assumes. Where the
+people of one instant disagree by more than that error allows, the uncertainty
+is widened by how much more (:func:`people_disagreement`).
 
 On pose2sim_single (one real person, four cameras, five instants) the camera
 distances come out within 1% of the calibration, on pose2sim_multi 7-8% long: there
