@@ -127,10 +127,17 @@ class MetricScale:
             if self.relative_pose
             else ""
         )
-        who = self.people()
+        return f"+-{100 * self.uncertainty:.1f}% ({self.basis()}{pose})"
+
+    def basis(self) -> str:
+        """Whom the scale rests on (:meth:`people`), and by how much their
+        disagreement widened it, if it did."""
         if self.disagreement > 1.0:
-            who += f", widened x{self.disagreement:.1f}: they disagree on the size"
-        return f"+-{100 * self.uncertainty:.1f}% ({who}{pose})"
+            return (
+                f"{self.people()}, widened x{self.disagreement:.1f}: they disagree "
+                "on the size"
+            )
+        return self.people()
 
     def people(self) -> str:
         """Whom the scale rests on: "3 people"; static cameras "5 identities
@@ -360,14 +367,13 @@ def _person_views(
         for ident in np.unique(keys[:, 0]):  # loop over the image's people
             rows = keys[:, 0] == ident
             j = keys[rows, 1] - offset
-            rank = [  # how surely the database names each person: by its
-                # index (anonymous), by its own id, not at all (_prior_person)
-                0
-                if identity.get((int(image_id), k)) == ident
-                else 1
-                if p.person_id is not None
-                and identity.get((int(image_id), p.person_id)) == ident
-                else 2
+            image = int(image_id)
+            rank = [  # the person the database names first: by its index
+                # (anonymous), then by its own id (_prior_person)
+                (
+                    identity.get((image, k)) != ident,
+                    p.person_id is None or identity.get((image, p.person_id)) != ident,
+                )
                 for k, p in enumerate(persons)
             ]
             k = _prior_person(persons, j, tracks.xy_img[obs[rows]], rank)
@@ -491,7 +497,7 @@ def _prior_person(
     persons: Sequence[PersonPrior],
     j: IndexArray,
     xy: FloatArray,
-    rank: Sequence[int] | None = None,
+    rank: Sequence[tuple[bool, bool]],
 ) -> int | None:
     """The index of the prior person whose keypoints ``j`` are at ``xy``: a VC
     keypoint is its prior's 2D keypoint. None: no such person (or it has no 3D
@@ -500,10 +506,10 @@ def _prior_person(
     Several people can have the same keypoints: a static camera's view holds
     every instant's people, and a person who stood still, or a repeated video
     frame, is detected where they were. The people are tried in the order of
-    ``rank`` (a stable sort; 0 first): how surely the database names each one.
+    ``rank`` (a stable sort, least first): how surely the database names each one.
     Its person id is the prior's index for an anonymous person (whose prior
     `map` may since have given an identity) and the prior's own id otherwise."""
-    order = sorted(range(len(persons)), key=lambda k: rank[k] if rank else 0)
+    order = sorted(range(len(persons)), key=lambda k: rank[k])
     for k in order:  # loop over the image's people (a handful)
         p = persons[k]
         if p.keypoints_xy is None or p.keypoints_cam is None:

@@ -471,14 +471,11 @@ def _metric_scale(
         return None, why
     apply_metric_scale_inplace(rec, scale)
     logger.info(
-        "metric scale: x%.4f to metres, +-%.1f%% (the people's size, %s%s; their "
+        "metric scale: x%.4f to metres, +-%.1f%% (the people's size, %s; their "
         "%d views spread %.1f%%%s)",
         scale.scale,
         100 * scale.uncertainty,
-        scale.people(),
-        f", widened x{scale.disagreement:.1f}: they disagree on the size"
-        if scale.disagreement > 1.0
-        else "",
+        scale.basis(),
         scale.num_person_views,
         100 * scale.spread,
         f"; the two images' relative pose +-{100 * scale.relative_pose:.1f}%"
