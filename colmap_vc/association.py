@@ -41,7 +41,7 @@ import numpy as np
 
 from .evaluation import pose_disagreement_deg
 from .meshalign import procrustes
-from .structs import FloatArray
+from .structs import BoolArray, FloatArray
 
 logger = logging.getLogger(__name__)
 
@@ -270,7 +270,7 @@ def _conflict(l1: LinkEvidence, l2: LinkEvidence) -> bool:
 
 
 def _hypotheses(
-    unary: FloatArray, pairwise: FloatArray, conflict: np.ndarray
+    unary: FloatArray, pairwise: FloatArray, conflict: BoolArray
 ) -> list[tuple[float, frozenset[int]]]:
     """Greedy link sets, one per seed: add the link that raises the score most.
 
@@ -283,7 +283,8 @@ def _hypotheses(
         members = [seed]
         score = float(unary[seed])
         while True:
-            free = ~conflict[members].any(axis=0)
+            # (n,) mask; asarray narrows the stub's "np.bool | array" of any(axis=0).
+            free = np.asarray(~conflict[members].any(axis=0))
             free[members] = False
             if not free.any():
                 break

@@ -14,9 +14,10 @@ import logging
 import signal
 import sqlite3
 import sys
-from collections.abc import Sequence
+from collections.abc import Callable, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
+from typing import TYPE_CHECKING, Any
 
 import tyro
 
@@ -27,6 +28,9 @@ from .messages import (
     os_message,
     sqlite_message,
 )
+
+if TYPE_CHECKING:
+    import pycolmap
 
 logger = logging.getLogger("colmap_vc")
 
@@ -255,7 +259,8 @@ def _setup_logging(verbose: bool) -> None:
         set_min_log_level(1)
 
 
-def _load_model(path: Path):  # -> (pycolmap.Reconstruction, its folder)
+def _load_model(path: Path) -> tuple[pycolmap.Reconstruction, Path]:
+    """The model in ``path`` (or its sub-model with most images) and its folder."""
     import pycolmap
 
     if not path.exists():
@@ -560,7 +565,7 @@ def _run_demo(cmd: Demo) -> int:
     return 0
 
 
-COMMANDS = {
+COMMANDS: dict[str, Callable[..., object]] = {
     "synth": Synth,
     "frames": Frames,
     "priors": Priors,
@@ -571,7 +576,8 @@ COMMANDS = {
     "report": Report,
     "demo": Demo,
 }
-RUNNERS = {
+# Each runner takes the command of its key: Any, as a dict cannot say so.
+RUNNERS: dict[type, Callable[[Any], int]] = {
     Synth: _run_synth,
     Frames: _run_frames,
     Priors: _run_priors,
@@ -606,7 +612,7 @@ def run_command(cmd: object) -> int:
     verbose = bool(getattr(cmd, "verbose", False))
     previous = signal.signal(signal.SIGTERM, _raise_terminated)
     try:
-        return RUNNERS[type(cmd)](cmd)  # type: ignore[index]
+        return RUNNERS[type(cmd)](cmd)
     except KeyboardInterrupt:
         logger.error("%s", interrupted_message(cmd, "Ctrl-C"), exc_info=verbose)
         return EXIT_INTERRUPTED

@@ -18,6 +18,7 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TypedDict
 
 import pycolmap
 
@@ -32,11 +33,26 @@ from .evaluation import (
 )
 from .keypoint_ba import KeypointBaOptions
 from .priors import read_priors
-from .synthetic import SynthOptions, generate
+from .synthetic import NoiseLevel, SynthOptions, generate
 
 logger = logging.getLogger(__name__)
 
-DEFAULT_SCENE = {"preset": "dome", "seed": 0, "num_people": 1, "noise": "realistic"}
+
+class _Scene(TypedDict):
+    """The demo's scene: the arguments it gives ``synthetic.generate``."""
+
+    preset: str
+    seed: int
+    num_people: int
+    noise: str
+
+
+DEFAULT_SCENE: _Scene = {
+    "preset": "dome",
+    "seed": 0,
+    "num_people": 1,
+    "noise": "realistic",
+}
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -67,7 +83,7 @@ def run(out_dir: Path, *, overwrite: bool = False) -> DemoSummary:
         SynthOptions(
             seed=DEFAULT_SCENE["seed"],
             num_people=DEFAULT_SCENE["num_people"],
-            noise=DEFAULT_SCENE["noise"],
+            noise=NoiseLevel(DEFAULT_SCENE["noise"]),
         ),
     )
     timings["synth"] = time.perf_counter() - t0

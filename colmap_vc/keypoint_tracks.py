@@ -175,7 +175,9 @@ def body_tracks(
         track=track.ravel()[order].astype(np.int64),
         image_id=image_id[order],
         point2D_idx=idx[order],
-        xy_img=xy[order],
+        # float64 already (the database's x, y are f8); the unpacking of the
+        # generators above joins the five arrays' dtypes, asarray restores it.
+        xy_img=np.asarray(xy[order], dtype=np.float64),
         keys=keys.astype(np.int64),
     )
 

@@ -145,8 +145,10 @@ def template_key(person: PersonPrior) -> str:
     """The topology a person's mesh uses: its template name or a hash of its faces."""
     if person.template:
         return person.template
+    # tobytes(): the bytes of the buffer (C order), which mypy accepts on Python 3.11,
+    # where numpy's stubs give ndarray no __buffer__.
     digest = hashlib.sha1(
-        np.ascontiguousarray(person.faces, dtype=np.int64)
+        np.ascontiguousarray(person.faces, dtype=np.int64).tobytes()
     ).hexdigest()
     return f"faces:{digest[:12]}"
 

@@ -236,10 +236,10 @@ def _cast_once(
     geom, face = _cast_brute_force(scene, origins, dirs)
     t = np.full(len(origins), np.inf)
     bary = np.zeros((len(origins), 3))
-    hit = face >= 0
-    if hit.any():
-        t[hit], bary[hit] = _refine_hits(
-            scene, origins[hit], dirs[hit], geom[hit], face[hit]
+    hit_mask = face >= 0
+    if hit_mask.any():
+        t[hit_mask], bary[hit_mask] = _refine_hits(
+            scene, origins[hit_mask], dirs[hit_mask], geom[hit_mask], face[hit_mask]
         )
     return geom, face, t, bary
 
@@ -366,6 +366,9 @@ def rays_cam(camera: pycolmap.Camera, xy_img: FloatArray) -> FloatArray:
     if len(xy_img) == 0:
         return np.zeros((0, 3))
     xy = camera.cam_from_img(np.asarray(xy_img, dtype=np.float64))
+    # An (N, 2) array takes the batch overload, which never returns None (the stub's
+    # single-point overload, listed first, is the one that may).
+    assert xy is not None
     d = np.concatenate([xy, np.ones((len(xy), 1))], axis=1)
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 

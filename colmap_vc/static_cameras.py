@@ -30,7 +30,7 @@ from scipy.sparse import csr_matrix
 from scipy.sparse.csgraph import connected_components
 
 from .database import DatabaseViews, TwoViewGeometryRow
-from .structs import ImagePrior, ScenePriors
+from .structs import ImagePrior, PersonPrior, ScenePriors
 
 logger = logging.getLogger(__name__)
 
@@ -132,7 +132,7 @@ def merge_priors(
     groups: dict[PersonKey, str] = {}
     instants = sorted(set(static.instant_of.values()))
     for rep in sorted(static.representative.values()):
-        persons = []
+        persons: list[PersonPrior] = []
         for name in static.members(rep):
             if name not in priors.images:
                 continue

@@ -145,8 +145,8 @@ def initial_thickness(
     R, t = geometry.cam2_from_cam1[:, :3], geometry.cam2_from_cam1[:, 3]
     c = -R.T @ t  # camera 2's centre in camera 1 (unit baseline)
     # S1 = R^T S2 + s c for the meeting point S seen in both frames.
-    scale = np.nanmedian((p1 - p2 @ R) @ c)
-    scale = float(scale) if np.isfinite(scale) and scale > 0 else 1.0
+    median = np.nanmedian((p1 - p2 @ R) @ c)
+    scale = float(median) if np.isfinite(median) and median > 0 else 1.0
     o2 = scale * c
     x2_in_1 = (x2 - scale * t) @ R  # R^T (X2 - s t)
     # Least squares of [X1 | o2] (a, b)^T = X2 - X1, one 3x2 system per VC.
@@ -190,8 +190,8 @@ def link_evidence(
             continue
         rows = np.arange(len(m))
         if len(m) > options.max_link_vcs:  # evenly spread, deterministic
-            rows = np.linspace(0, len(m) - 1, options.max_link_vcs).round()
-            rows = np.unique(rows.astype(np.int64))
+            spread = np.linspace(0, len(m) - 1, options.max_link_vcs).round()
+            rows = np.unique(spread.astype(np.int64))
         result = verify_pair(
             cam1,
             cam2,

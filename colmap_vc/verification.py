@@ -275,7 +275,11 @@ def inverted(result: Verification) -> Verification:
             config=g.config,
             E=g.E.T.copy(),
             F=g.F.T.copy(),
-            H=np.linalg.inv(g.H) if abs(np.linalg.det(g.H)) > 1e-12 else g.H.copy(),
+            H=(
+                np.asarray(np.linalg.inv(g.H), dtype=np.float64)
+                if abs(np.linalg.det(g.H)) > 1e-12
+                else g.H.copy()
+            ),
             cam2_from_cam1=np.c_[R.T, -R.T @ t],
         ),
         vc_is_inlier=result.vc_is_inlier,

@@ -32,6 +32,7 @@ from typing import Any
 
 import cv2
 import numpy as np
+import numpy.typing as npt
 
 from colmap_vc.estimators import body
 from colmap_vc.structs import BoolArray, FloatArray
@@ -79,7 +80,7 @@ class PoseResult:
 
     landmarks: body.BodyLandmarks
     presence: float  # sigmoid of the pose-presence flag
-    segmentation_logits: FloatArray  # (H, W) float32 in image pixels; -inf off the ROI
+    segmentation_logits: npt.NDArray[np.float32]  # (H, W) image pixels; -inf off ROI
     roi: Roi
     detection: PersonBox
 
@@ -375,7 +376,9 @@ class BlazePose:
         return PoseResult(
             landmarks=body.BodyLandmarks(xy_img=xy, points_3d=p3, visibility=vis),
             presence=flag,
-            segmentation_logits=logits,
+            # float32 already (warpAffine keeps its input's depth); cv2's stub types
+            # the result as any int or float array.
+            segmentation_logits=np.asarray(logits, dtype=np.float32),
             roi=roi,
             detection=det,
         )

@@ -211,7 +211,7 @@ def two_view_initialised(
                     "starting from the meshes' relative pose",
                     deviation,
                 )
-                t = mesh_rel[:, 3] / max(np.linalg.norm(mesh_rel[:, 3]), 1e-12)
+                t = mesh_rel[:, 3] / max(float(np.linalg.norm(mesh_rel[:, 3])), 1e-12)
                 rel = np.c_[mesh_rel[:, :3], t]
     rec = pycolmap.Reconstruction()
     for camera in views.cameras.values():

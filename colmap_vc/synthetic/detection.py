@@ -244,6 +244,7 @@ def false_person_view(
 def _project_bbox_pixels(camera: pycolmap.Camera, verts_cam: FloatArray) -> FloatArray:
     """Pixel centres (N, 2) of the image inside the bounding box of the projection."""
     xy = camera.img_from_cam(verts_cam, check_cheirality=False)
+    assert xy is not None  # (N, 3) points take the batch overload: never None
     lo = np.clip(np.floor(xy.min(axis=0)) - 1, 0, [camera.width, camera.height])
     hi = np.clip(np.ceil(xy.max(axis=0)) + 1, 0, [camera.width, camera.height])
     if (hi <= lo).any():

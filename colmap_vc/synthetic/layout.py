@@ -237,7 +237,7 @@ def make_layout(
         # All around: even azimuths with jitter, so neighbours are 360/N apart.
         base = rng.uniform(0, 2 * math.pi)
         step = 2 * math.pi / num_cameras
-        azimuth = base + step * np.arange(num_cameras)
+        azimuth = base + step * np.arange(num_cameras, dtype=np.float64)
         azimuth += rng.uniform(-0.3, 0.3, num_cameras) * step
         elevation = np.deg2rad(rng.uniform(0, 60, num_cameras))
         radius = rng.uniform(3.0, 5.0, num_cameras)

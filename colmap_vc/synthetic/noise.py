@@ -212,7 +212,7 @@ def _refit_translation(points_cam: FloatArray, target_norm: FloatArray) -> Float
     rhs = np.r_[
         u * points_cam[:, 2] - points_cam[:, 0], v * points_cam[:, 2] - points_cam[:, 1]
     ]
-    return np.linalg.lstsq(A, rhs, rcond=None)[0]
+    return np.asarray(np.linalg.lstsq(A, rhs, rcond=None)[0], dtype=np.float64)
 
 
 def _transform(T: FloatArray, points: FloatArray) -> FloatArray:
@@ -334,8 +334,10 @@ def _predict_surface_map(
                         else np.isin(names, ["foot_left", "foot_right"])
                     )
                 )
-                sel = keep & np.isin(bodies.face_part[face], limb_parts)
-                face[sel], bary[sel] = mirror_surface(bodies, face[sel], bary[sel])
+                in_limb = keep & np.isin(bodies.face_part[face], limb_parts)
+                face[in_limb], bary[in_limb] = mirror_surface(
+                    bodies, face[in_limb], bary[in_limb]
+                )
     if model.drop_fraction > 0:
         blob = _smooth_field(rng, (h, w), 8.0)[px[:, 1], px[:, 0]]
         keep &= blob > np.quantile(blob, model.drop_fraction)
@@ -379,6 +381,7 @@ def _keypoints(
 
     true_cam = joints(bodies, _transform(view.cam_from_body, view.body_vertices))
     xy = camera.img_from_cam(true_cam, check_cheirality=False)
+    assert xy is not None  # (K, 3) points take the batch overload: never None
     xy = (
         xy + rng.normal(0, model.keypoint_sigma_px, xy.shape)
         if model.keypoint_sigma_px

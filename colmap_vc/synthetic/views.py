@@ -68,7 +68,7 @@ def person_views(
                 pose=person.pose,
                 body_vertices=posed[k],
                 cam_from_body=cam_from_body,
-                xy_img=np.stack([cols, rows], axis=1) + 0.5,
+                xy_img=np.stack([cols, rows], axis=1, dtype=np.float64) + 0.5,
                 face_idx=view.face_idx[rows, cols],
                 bary=view.bary[rows, cols],
                 mask=mask,
