@@ -104,18 +104,19 @@ def replace_section(doc: Path, marker: str, body: str) -> None:
 
 def scene_is_current(path: Path) -> bool:
     """Whether the synthetic scene at ``path`` was made with today's noise models
-    (its scene.json's ``noise_models``): a scene made before a change to
-    docs/synthetic.md's noise is stale, and a bench makes it again rather than
-    measure the old noise."""
+    (its scene.json's ``noise_models`` and ``noise_revision``): a scene made before
+    a change to docs/synthetic.md's noise, or to the code that draws it, is stale,
+    and a bench makes it again rather than measure the old noise."""
     from dataclasses import asdict
 
-    from colmap_vc.synthetic.noise import NOISE_LEVELS, NoiseLevel
+    from colmap_vc.synthetic.noise import NOISE_LEVELS, NOISE_REVISION, NoiseLevel
 
     spec = path / "scene.json"
     if not spec.exists():
         return False
-    models = json.loads(spec.read_text()).get("noise_models")
-    if not models:
+    scene = json.loads(spec.read_text())
+    models = scene.get("noise_models")
+    if not models or scene.get("noise_revision", 1) != NOISE_REVISION:
         return False
     return all(
         model == json.loads(json.dumps(asdict(NOISE_LEVELS[NoiseLevel(level)])))

@@ -702,3 +702,27 @@ def test_instants_are_deterministic_and_instant_0_is_the_one_instant_scene(tmp_p
         assert d1[f"images/{cam}.jpg"] == da[f"images/{cam}_t00.jpg"]
         assert d1[f"gt/surface/{cam}.npz"] == da[f"gt/surface/{cam}_t00.npz"]
         assert da[f"images/{cam}_t00.jpg"] != da[f"images/{cam}_t01.jpg"]
+
+
+def test_a_left_right_flip_of_the_dense_map_mirrors_whole_limbs():
+    """A flipped arm takes its hand along and a flipped leg its foot (docs/
+    synthetic.md: "whole limbs mirrored left/right"); until NOISE_REVISION 2 the
+    hands and feet stayed unflipped."""
+    from colmap_vc.synthetic import bodies as body_lib
+
+    names = np.array(body_lib.load_bodies().part_names)
+    chains = {
+        limb: set(names[noise.limb_part_ids(names, limb)].tolist())
+        for limb in ("arm", "leg")
+    }
+    sides = ("left", "right")
+    assert chains["arm"] == {
+        f"{part}_{side}"
+        for part in ("upper_arm", "lower_arm", "hand")
+        for side in sides
+    }
+    assert chains["leg"] == {
+        f"{part}_{side}"
+        for part in ("upper_leg", "lower_leg", "foot")
+        for side in sides
+    }

@@ -49,7 +49,7 @@ from .layout import (
     instant_image_name,
     make_layout,
 )
-from .noise import NOISE_LEVELS, NoiseLevel, predict_person
+from .noise import NOISE_LEVELS, NOISE_REVISION, NoiseLevel, predict_person
 from .render import World, build_world, render_view
 from .views import Detections, detect, person_views, size_errors_of, write_surface_map
 
@@ -408,8 +408,9 @@ def _scene_spec(
     size_errors: dict[NoiseLevel, dict[int, float]],
 ) -> dict:
     """scene.json: what was generated (every image and person), from which options;
-    the noise model of every level whose priors were made (``noise_models``) and
-    each person's size error at each (``size_error``)."""
+    the noise model of every level whose priors were made (``noise_models``), the
+    revision of the code that drew them (``noise_revision``) and each person's size
+    error at each (``size_error``)."""
     num_people = len(scene.people) // options.num_instants
     people = []
     for p in scene.people:
@@ -439,6 +440,7 @@ def _scene_spec(
         "noise_models": {
             level.value: asdict(NOISE_LEVELS[level]) for level in size_errors
         },
+        "noise_revision": NOISE_REVISION,
         "detection_model": asdict(DETECTION_LEVELS[NoiseLevel(options.noise)]),
         "backdrop": scene.backdrop.value,
         "people": people,

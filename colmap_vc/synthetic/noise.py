@@ -36,6 +36,12 @@ if TYPE_CHECKING:
     from .bodies import BodyModel
 
 
+NOISE_REVISION = 2
+"""Bumped when the code changes what a noise model draws from the same parameters
+(2: a left/right flip of the dense map mirrors the hand or foot with its limb; it
+left them unflipped before). A scene made at another revision is stale."""
+
+
 class NoiseLevel(enum.StrEnum):
     """Named prior-noise levels."""
 
@@ -275,6 +281,15 @@ def _predict_mesh(
     return verts
 
 
+def limb_part_ids(names: np.ndarray, limb: str) -> IndexArray:
+    """The body parts of both sides of ``limb`` ("arm" or "leg"), the hand or the
+    foot included: the chain a left/right flip of the dense map mirrors whole."""
+    end = ("hand_left", "hand_right") if limb == "arm" else ("foot_left", "foot_right")
+    return np.flatnonzero(
+        (np.char.find(names.astype(str), limb) >= 0) | np.isin(names, end)
+    )
+
+
 def _predict_surface_map(
     bodies: BodyModel,
     view: PersonView,
@@ -325,15 +340,7 @@ def _predict_surface_map(
     if model.lr_flip_prob > 0:
         for limb in ("arm", "leg"):
             if rng.random() < model.lr_flip_prob:
-                limb_parts = np.flatnonzero(
-                    np.char.find(names.astype(str), limb)
-                    >= 0
-                    | (
-                        np.isin(names, ["hand_left", "hand_right"])
-                        if limb == "arm"
-                        else np.isin(names, ["foot_left", "foot_right"])
-                    )
-                )
+                limb_parts = limb_part_ids(names, limb)
                 in_limb = keep & np.isin(bodies.face_part[face], limb_parts)
                 face[in_limb], bary[in_limb] = mirror_surface(
                     bodies, face[in_limb], bary[in_limb]
