@@ -49,11 +49,11 @@ test-all: $(STAMP) colmap38 chromium
 	$(PY) -m pytest -q -m "slow or not slow"
 
 lint: $(STAMP)
-	$(PY) -m pip install -q ruff
+	$(PY) -m pip install -q ruff==0.17.6
 	$(PY) -m ruff check colmap_vc tests bench scripts
 
 typecheck: $(STAMP)
-	$(PY) -m pip install -q mypy
+	$(PY) -m pip install -q mypy==2.4.1
 	$(PY) -m mypy colmap_vc
 
 # Benchmarks: JSON under bench/out/, tables in docs/.
