@@ -485,14 +485,14 @@ def main() -> None:
         "![error vs angle](img/error_vs_angle.png)",
         "",
     ]
-    # Keep the sections other benches own (<!-- name:begin --> ... <!-- name:end -->:
-    # pose2sim.py, realdata.py, detection.py, static_cameras.py, ...), in order.
+    # Keep everything from the first section other benches own (<!-- name:begin -->
+    # ... <!-- name:end -->: pose2sim.py, realdata.py, static_cameras.py, ...) to
+    # the end, the prose written between those sections included.
     path = DOCS / "results.md"
     old = path.read_text() if path.exists() else ""
-    for name in re.findall(r"<!-- ([\w-]+):begin -->", old):
-        begin, end = f"<!-- {name}:begin -->", f"<!-- {name}:end -->"
-        if end in old:
-            doc += ["", old[old.index(begin) : old.index(end) + len(end)], ""]
+    first = re.search(r"<!-- [\w-]+:begin -->", old)
+    if first:
+        doc += ["", old[first.start() :]]
     path.write_text("\n".join(doc))
     print("\n".join(doc))
 
