@@ -18,7 +18,6 @@ import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TypedDict
 
 import pycolmap
 
@@ -38,21 +37,10 @@ from .synthetic import NoiseLevel, SynthOptions, generate
 logger = logging.getLogger(__name__)
 
 
-class _Scene(TypedDict):
-    """The demo's scene: the arguments it gives ``synthetic.generate``."""
-
-    preset: str
-    seed: int
-    num_people: int
-    noise: str
-
-
-DEFAULT_SCENE: _Scene = {
-    "preset": "dome",
-    "seed": 0,
-    "num_people": 1,
-    "noise": "realistic",
-}
+DEFAULT_PRESET = "dome"
+DEFAULT_SCENE = SynthOptions(seed=0, num_people=1, noise=NoiseLevel.REALISTIC)
+"""The bundled default scene: ``synthetic.generate(DEFAULT_PRESET, ...)`` with these
+options."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -77,15 +65,7 @@ def run(out_dir: Path, *, overwrite: bool = False) -> DemoSummary:
     outputs.prepare_output_dir(out_dir, "demo", overwrite=overwrite)
     logger.info("1/5 synth: the default dome scene into %s", scene_dir)
     t0 = time.perf_counter()
-    generate(
-        DEFAULT_SCENE["preset"],
-        scene_dir,
-        SynthOptions(
-            seed=DEFAULT_SCENE["seed"],
-            num_people=DEFAULT_SCENE["num_people"],
-            noise=NoiseLevel(DEFAULT_SCENE["noise"]),
-        ),
-    )
+    generate(DEFAULT_PRESET, scene_dir, DEFAULT_SCENE)
     timings["synth"] = time.perf_counter() - t0
     gt = pycolmap.Reconstruction(scene_dir / "gt" / "sparse")
 
