@@ -20,7 +20,15 @@ from pathlib import Path
 
 import numpy as np
 import pycolmap
-from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
+from common import (
+    DOCS,
+    OUT,
+    machine,
+    replace_section,
+    scene_is_current,
+    setup_logging,
+    write_json,
+)
 
 from colmap_vc import database
 from colmap_vc.augment import AugmentOptions, compute_virtual_correspondences
@@ -35,7 +43,7 @@ logger = logging.getLogger("bench.vc_geometry")
 
 def scene_dir(people: int, seed: int) -> Path:
     path = OUT / "scenes" / f"dome_p{people}_s{seed}"
-    if not (path / "database.db").exists():
+    if not ((path / "database.db").exists() and scene_is_current(path)):
         generate(
             "dome", path, SynthOptions(seed=seed, num_people=people, overwrite=True)
         )
