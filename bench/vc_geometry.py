@@ -4,7 +4,11 @@ For every image pair that sees a person in both images: does `augment` give it a
 verified two-view geometry, and how far is its relative rotation from ground truth,
 next to the mesh-alignment baseline (Procrustes between the two predicted meshes)?
 With the same VCs: inlier ratio after verification and the epipolar error of the VCs
-under the ground-truth poses. Priors: `clean` (gt/priors) and `realistic` (priors/).
+under the ground-truth poses. Priors: `clean` (gt/priors, with the true ids),
+`realistic` (priors/: anonymous, as a user's; the VCs pair people through
+`augment`'s association, and the mesh alignment pairs them by the identities it
+gave) and `realistic_ids` (the same priors with the true ids: the geometry without
+the association's errors).
 
     .venv/bin/python bench/vc_geometry.py [--seeds 0 1 2] [--people 1 3]
 
@@ -34,8 +38,10 @@ from colmap_vc import database
 from colmap_vc.augment import AugmentOptions, compute_virtual_correspondences
 from colmap_vc.baselines import mesh_alignment
 from colmap_vc.evaluation import relative_pose, rotation_angle_deg, vector_angle_deg
+from colmap_vc.mapping import apply_associations
 from colmap_vc.priors import read_priors
 from colmap_vc.synthetic import SynthOptions, generate
+from colmap_vc.synthetic.gt import add_true_ids
 from colmap_vc.verification import epipolar_errors_px
 
 logger = logging.getLogger("bench.vc_geometry")
@@ -47,6 +53,18 @@ def scene_dir(people: int, seed: int) -> Path:
         generate(
             "dome", path, SynthOptions(seed=seed, num_people=people, overwrite=True)
         )
+    return path
+
+
+PRIORS = {"clean": "gt/priors", "realistic": "priors", "realistic_ids": "priors_ids"}
+
+
+def priors_dir(scene: Path, level: str) -> Path:
+    """The scene's priors folder of ``level`` (the true ids added to the
+    realistic priors on first use)."""
+    path = scene / PRIORS[level]
+    if level == "realistic_ids" and not path.exists():
+        add_true_ids(scene, "priors", "priors_ids")
     return path
 
 
@@ -65,6 +83,8 @@ def evaluate(scene: Path, priors_dir: Path) -> dict:
     rec = pycolmap.Reconstruction(scene / "gt" / "sparse")
     gt = {im.name: im.cam_from_world().matrix() for im in rec.images.values()}
     id_of = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
+    # the baseline pairs people by identity: anonymous ones by the association's
+    priors = apply_associations(priors, vcs.associations, id_of)
     name_of = {v: k for k, v in id_of.items()}
     cam_of = {
         int(i): views.cameras[int(c)]
@@ -144,7 +164,7 @@ def main() -> None:
     args = parser.parse_args()
     setup_logging()
     results = {}
-    for people, level in itertools.product(args.people, ("clean", "realistic")):
+    for people, level in itertools.product(args.people, PRIORS):
         merged = {
             "pairs": [],
             "num_vcs": 0,
@@ -154,7 +174,7 @@ def main() -> None:
         }
         for seed in args.seeds:
             scene = scene_dir(people, seed)
-            r = evaluate(scene, scene / ("gt/priors" if level == "clean" else "priors"))
+            r = evaluate(scene, priors_dir(scene, level))
             for k in merged:
                 merged[k] = merged[k] + r[k]
             logger.info(
@@ -175,7 +195,7 @@ def main() -> None:
     ]
     summary = {}
     for key, r in results.items():
-        people, level = key.split("_")
+        people, level = key.split("_", 1)
         pairs = r["pairs"]
         ver = sum(p["verified"] for p in pairs)
         vc = stats([p["vc_rot_deg"] for p in pairs])

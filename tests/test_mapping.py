@@ -822,3 +822,44 @@ def test_colmap_quiet_silences_glog_inside_its_block_only(capfd, tmp_path, monke
     )
     assert after == before
     assert not [p.name for p in tmp_path.iterdir() if ".log." in p.name]
+
+
+def test_anonymous_people_take_the_identity_their_association_gave_them():
+    from colmap_vc.database_schema import AssociationMethod
+    from colmap_vc.structs import ImagePrior, PersonPrior, ScenePriors
+
+    def person(person_id):
+        return PersonPrior(
+            vertices_cam=np.zeros((3, 3)),
+            faces=np.zeros((0, 3), dtype=np.int64),
+            person_id=person_id,
+        )
+
+    priors = ScenePriors(
+        images={
+            n: ImagePrior(image_name=n, persons=tuple(map(person, ids)))
+            for n, ids in (
+                ("a.jpg", (None, None)),
+                ("b.jpg", (None, 4)),
+                ("c.jpg", (None,)),
+            )
+        }
+    )
+    link = dict(method=AssociationMethod.JOINT, score=1.0)
+    associations = [  # a#1 = b#0 = c#0 (a chain), a#0 with nobody
+        database.PersonAssociation(
+            image_id1=1, image_id2=2, person_id1=1, person_id2=0, **link
+        ),
+        database.PersonAssociation(
+            image_id1=2, image_id2=3, person_id1=0, person_id2=0, **link
+        ),
+    ]
+    out = mapping.apply_associations(
+        priors, associations, {"a.jpg": 1, "b.jpg": 2, "c.jpg": 3}
+    )
+    ids = {n: [p.person_id for p in ip.persons] for n, ip in out.images.items()}
+    # one new identity for the chain, above the ids the priors already use
+    assert ids["a.jpg"][1] == ids["b.jpg"][0] == ids["c.jpg"][0] >= 5
+    assert ids["a.jpg"][0] is None  # associated with nobody: stays anonymous
+    assert ids["b.jpg"][1] == 4  # a given id is kept
+    assert mapping.apply_associations(priors, [], {}) is priors

@@ -12,6 +12,7 @@ from .options import Mapper, MappingOptions, MappingSummary
 from .outputs import OPTIONS_FILE, OUTPUT_MARKER, add_static_members_inplace
 from .pipeline import run, run_incremental
 from .priors import (
+    apply_associations,
     leave_out_prior_outliers_inplace,
     leave_out_tilted_inplace,
     with_associated_ids,
@@ -24,6 +25,7 @@ __all__ = [
     "MappingOptions",
     "MappingSummary",
     "add_static_members_inplace",
+    "apply_associations",
     "leave_out_prior_outliers_inplace",
     "leave_out_tilted_inplace",
     "run",

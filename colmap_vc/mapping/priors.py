@@ -11,7 +11,7 @@ from __future__ import annotations
 
 import dataclasses
 import logging
-from collections.abc import Collection
+from collections.abc import Collection, Mapping
 from pathlib import Path
 
 import numpy as np
@@ -279,9 +279,22 @@ def with_associated_ids(priors: ScenePriors, database_path: Path) -> ScenePriors
     associations = database.read_person_associations(database_path)
     if not associations:
         return priors
-    identity = person_identities(associations)
     views = database.read_views(database_path)
     id_of = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
+    return apply_associations(priors, associations, id_of)
+
+
+def apply_associations(
+    priors: ScenePriors,
+    associations: list[database.PersonAssociation],
+    id_of: Mapping[str, int],
+) -> ScenePriors:
+    """:func:`with_associated_ids` from the associations themselves (``id_of``:
+    image name -> the database's image id), as `augment` computes them
+    (``VirtualCorrespondences.associations``) before it writes them."""
+    if not associations:
+        return priors
+    identity = person_identities(associations)
     offset = 1 + max(
         (
             p.person_id
