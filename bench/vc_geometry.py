@@ -59,7 +59,7 @@ def scene_dir(people: int, seed: int) -> Path:
 PRIORS = {"clean": "gt/priors", "realistic": "priors", "realistic_ids": "priors_ids"}
 
 
-def priors_dir(scene: Path, level: str) -> Path:
+def priors_folder(scene: Path, level: str) -> Path:
     """The scene's priors folder of ``level`` (the true ids added to the
     realistic priors on first use)."""
     path = scene / PRIORS[level]
@@ -174,7 +174,7 @@ def main() -> None:
         }
         for seed in args.seeds:
             scene = scene_dir(people, seed)
-            r = evaluate(scene, priors_dir(scene, level))
+            r = evaluate(scene, priors_folder(scene, level))
             for k in merged:
                 merged[k] = merged[k] + r[k]
             logger.info(
