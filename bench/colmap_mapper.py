@@ -56,7 +56,7 @@ def main() -> None:
     args = parser.parse_args()
     setup_logging()
     t0 = time.perf_counter()
-    results: dict[str, dict] = {}
+    rows: list[dict] = []
     for kind, label in KINDS.items():
         for level in args.levels:
             for arm, (db_name, map_run) in ARMS.items():
@@ -78,13 +78,21 @@ def main() -> None:
                     )
                     colmap.append(evaluate_reconstruction(rec, gt))
                     ours.append(evaluate_reconstruction(map_model(run / map_run), gt))
-                key = f"{label}, {level}, {arm}"
-                results[key] = {"colmap mapper": pooled(colmap), "map": pooled(ours)}
+                row = {
+                    "scenes": label,
+                    "priors": level,
+                    "matches": arm,
+                    "colmap mapper": pooled(colmap),
+                    "map": pooled(ours),
+                }
+                rows.append(row)
                 logger.info(
-                    "%s: COLMAP %.1f, map %.1f AUC@15",
-                    key,
-                    results[key]["colmap mapper"]["auc"]["15"],
-                    results[key]["map"]["auc"]["15"],
+                    "%s, %s, %s: COLMAP %.1f, map %.1f AUC@15",
+                    label,
+                    level,
+                    arm,
+                    row["colmap mapper"]["auc"]["15"],
+                    row["map"]["auc"]["15"],
                 )
     lines = [
         "| scenes | priors | matches | `colmap mapper`: registered, AUC@15/30/45 "
@@ -98,11 +106,10 @@ def main() -> None:
             f"{r['auc']['30']:.1f}/{r['auc']['45']:.1f} ({r['median_error_deg']:.1f})"
         )
 
-    for key, r in results.items():
-        label, level, arm = key.rsplit(", ", 2)
+    for r in rows:
         lines.append(
-            f"| {label} | {level} | {arm} | {cell(r['colmap mapper'])} "
-            f"| {cell(r['map'])} |"
+            f"| {r['scenes']} | {r['priors']} | {r['matches']} "
+            f"| {cell(r['colmap mapper'])} | {cell(r['map'])} |"
         )
     lines.append(
         f"\nMeasured at commit {machine()['commit']} by `.venv/bin/python "
@@ -117,7 +124,7 @@ def main() -> None:
         "colmap_mapper.json",
         {
             "machine": machine(),
-            "results": results,
+            "results": rows,
             "elapsed_s": time.perf_counter() - t0,
         },
     )
