@@ -244,8 +244,9 @@ def scene_errors(
     first_vc = dict(
         zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
     )
-    keypoints = kt.keypoint_tracks(db, ids)
-    surface = kt.surface_tracks(db, ids)
+    records = kt.read_vc_records(db)
+    keypoints = kt.keypoint_tracks(records, ids)
+    surface = kt.surface_tracks(records, ids)
     vis = visibility(db)
     seen = np.array(
         [

@@ -40,7 +40,7 @@ from common import (
     write_json,
 )
 
-from colmap_vc import augment, database, mapping
+from colmap_vc import augment, mapping
 from colmap_vc.gba.ceres import ba_options, bundle_adjust_inplace
 from colmap_vc.keypoint_ba import (
     KeypointBaOptions,
@@ -52,6 +52,7 @@ from colmap_vc.keypoint_tracks import (
     delete_points_observing,
     keypoint_observations,
     keypoint_tracks,
+    read_vc_records,
 )
 
 logger = logging.getLogger("bench.gba_speed")
@@ -62,11 +63,9 @@ def gba_model(db: Path, rec: pycolmap.Reconstruction, options: KeypointBaOptions
     noise -> (model, people noise, noise-model seconds)."""
     out = pycolmap.Reconstruction(rec)
     registered = np.array(sorted(out.reg_image_ids()), dtype=np.int64)
-    tracks = keypoint_tracks(db, registered)
-    views = database.read_views(db)
-    num_classic = dict(
-        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
-    )
+    records = read_vc_records(db)
+    tracks = keypoint_tracks(records, registered)
+    num_classic = records.num_classic
     delete_points_observing(out, keypoint_observations(tracks))
     vc_only = [
         pid
@@ -78,7 +77,7 @@ def gba_model(db: Path, rec: pycolmap.Reconstruction, options: KeypointBaOptions
     add_keypoint_points(out, tracks, options.min_track_length)
     bundle_adjust_inplace(out, options.loss_scale_px)
     t0 = time.perf_counter()
-    people, _ = add_weighted_surface(db, out, tracks, options)
+    people, _ = add_weighted_surface(records, out, tracks, options)
     return out, people, time.perf_counter() - t0
 
 

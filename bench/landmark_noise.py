@@ -44,6 +44,7 @@ from colmap_vc.gba.noise import MAD_TO_SIGMA, reprojection_residuals
 from colmap_vc.keypoint_tracks import (
     KeypointTracks,
     keypoint_tracks,
+    read_vc_records,
     surface_tracks,
     triangulate_tracks,
 )
@@ -126,7 +127,8 @@ def measure(models: list[tuple[Path, pycolmap.Reconstruction]]) -> dict:
     avatar = 0
     for db, rec in models:
         ids = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
-        kp, sf = keypoint_tracks(db, ids), surface_tracks(db, ids)
+        records = read_vc_records(db)
+        kp, sf = keypoint_tracks(records, ids), surface_tracks(records, ids)
         assert kp.keys is not None
         rk, rs = residuals(rec, kp), residuals(rec, sf)
         landmark = kp.keys[kp.track, 1] - MatchingOptions().num_samples
@@ -196,7 +198,7 @@ def measure_3d(dbs: list[tuple[Path, Path]]) -> dict:
         for db, data in dbs:
             rec = gt_model(db, data)
             ids = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
-            kp = keypoint_tracks(db, ids)
+            kp = keypoint_tracks(read_vc_records(db), ids)
             assert kp.keys is not None
             X, seen_by = triangulate_tracks(rec, kp)
             rk = residuals(rec, kp)

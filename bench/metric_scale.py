@@ -74,7 +74,6 @@ def scale_info(folder: Path, database_path: Path | None, ratio: float) -> dict:
         again = people_scale(
             pycolmap.Reconstruction(folder),
             read_inputs(database_path, MappingOptions(), None),
-            None,
             MappingOptions(),
         )
         if again is not None:

@@ -66,9 +66,9 @@ def person_scales(
     """Per way, the scale each (image id, identity) gives (metres per model unit),
     and each identity's centroid of triangulated keypoints (model frame), on the
     keypoints `map`'s scale uses (``person_keypoints``)."""
-    priors = read_inputs(database_path, MappingOptions(), None).priors
-    assert priors is not None
-    found = person_keypoints(database_path, rec, priors)
+    inputs = read_inputs(database_path, MappingOptions(), None)
+    assert inputs.priors is not None
+    found = person_keypoints(inputs.records, rec, inputs.priors)
     out: dict[str, dict[tuple[int, int], float]] = {w: {} for w in WAYS}
     centre: dict[int, np.ndarray] = {}
     if found is None:

@@ -42,6 +42,7 @@ from colmap_vc.keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
     keypoint_tracks,
+    read_vc_records,
     subset,
     triangulate_tracks,
 )
@@ -172,7 +173,7 @@ def run(ds: str) -> dict:
     rec = pycolmap.Reconstruction(work / "sparse_no-gravity" / "0")
     _, gt = load_calibration(SHARED / f"pose2sim_{ds}")
     registered = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
-    tracks = keypoint_tracks(db, registered)
+    tracks = keypoint_tracks(read_vc_records(db), registered)
     assert tracks.keys is not None
     reps = set(np.unique(tracks.image_id).tolist())  # one image per camera
     name = {i: rec.image(i).name for i in reps}

@@ -27,17 +27,16 @@ import dataclasses
 import logging
 import time
 from dataclasses import dataclass
-from pathlib import Path
 
 import numpy as np
 import pycolmap
 
-from . import database
 from .camera_check import check_cameras_inplace
 from .gba.ceres import PeopleNoise, bundle_adjust_inplace
 from .gba.correlated import correlated_noise
 from .keypoint_tracks import (
     KeypointTracks,
+    VcRecords,
     add_keypoint_points,
     delete_points_observing,
     keypoint_observations,
@@ -198,7 +197,7 @@ def with_loss_scale(
 
 
 def keypoint_bundle_adjustment(
-    database_path: Path,
+    records: VcRecords,
     rec: pycolmap.Reconstruction,
     options: KeypointBaOptions | None = None,
     *,
@@ -206,7 +205,9 @@ def keypoint_bundle_adjustment(
 ) -> tuple[pycolmap.Reconstruction, KeypointBaSummary]:
     """A copy of ``rec`` with keypoint tracks by identity, bundle-adjusted (module doc).
 
-    ``rec`` is not modified. A database without keypoint VCs returns a plain copy.
+    ``rec`` is not modified. Without keypoint VCs in ``records`` (the database's
+    people, :func:`~colmap_vc.keypoint_tracks.read_vc_records`) it returns a
+    plain copy.
     ``mirror`` (template track id -> its left/right counterpart's) lets the camera
     check try an image's people with left and right exchanged.
     """
@@ -218,11 +219,9 @@ def keypoint_bundle_adjustment(
     registered = np.array(
         [i for i, im in out.images.items() if im.has_pose], dtype=np.int64
     )
-    tracks = keypoint_tracks(Path(database_path), registered)
+    tracks = keypoint_tracks(records, registered)
     if tracks.num_tracks == 0:
-        logger.info(
-            "keypoint BA: no keypoint VCs in %s: model unchanged", database_path
-        )
+        logger.info("keypoint BA: no keypoint VCs in the database: model unchanged")
         return out, KeypointBaSummary(
             num_tracks=0,
             num_keypoint_observations=0,
@@ -230,10 +229,7 @@ def keypoint_bundle_adjustment(
             num_surface_observations_dropped=0,
             elapsed_s=time.perf_counter() - t0,
         )
-    views = database.read_views(database_path)
-    num_classic = dict(
-        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
-    )
+    num_classic = records.num_classic
     # The model's points: classic ones stay; VC-only ones are surface points (the
     # keypoint ones are rebuilt below), weighted to the budget.
     keypoint_obs = keypoint_observations(tracks)
@@ -292,7 +288,7 @@ def keypoint_bundle_adjustment(
             lambda rec: bundle_adjust_inplace(rec, loss, weights),
             mirror=mirror,
             num_classic=num_classic,
-            vc_identity=vc_identities(Path(database_path)),
+            vc_identity=vc_identities(records),
         )
         relocalised, left_out, mirrored = (
             check.relocalised,
@@ -300,7 +296,7 @@ def keypoint_bundle_adjustment(
             check.mirrored,
         )
         tracks, exchanged = check.tracks, check.exchanged
-    people = weights
+    noise = weights
     if options.surface_tracks:
         # After the camera check: a prior turned front to back would pull its
         # camera with hundreds of surface samples before the check could
@@ -308,17 +304,17 @@ def keypoint_bundle_adjustment(
         for point_id in vc_only:  # the budget's points: replaced by the tracks
             if out.exists_point3D(point_id):
                 out.delete_point3D(point_id)
-        people, num_surface = add_weighted_surface(
-            database_path, out, tracks, options, exchanged
+        noise, num_surface = add_weighted_surface(
+            records, out, tracks, options, exchanged
         )
-        bundle_adjust_inplace(out, loss, people)
+        bundle_adjust_inplace(out, loss, noise)
     summary = KeypointBaSummary(
         num_tracks=int(good.sum()),
         num_keypoint_observations=num_kp_obs,
         num_surface_observations=num_surface,
         num_surface_observations_dropped=dropped,
         elapsed_s=time.perf_counter() - t0,
-        people=people,
+        people=noise,
         relocalised=tuple(relocalised),
         left_out=left_out,
         mirrored=tuple(mirrored),
@@ -342,7 +338,7 @@ def keypoint_bundle_adjustment(
 
 
 def add_weighted_surface(
-    database_path: Path,
+    records: VcRecords,
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
     options: KeypointBaOptions,
@@ -358,7 +354,7 @@ def add_weighted_surface(
     registered = np.array(
         sorted(i for i, im in rec.images.items() if im.has_pose), dtype=np.int64
     )
-    surface = surface_tracks(database_path, registered)
+    surface = surface_tracks(records, registered)
     if surface.num_tracks and tracks.num_tracks and tracks.keys is not None:
         # Only people whose keypoints the checks kept in that image, and not
         # those exchanged there.
@@ -373,11 +369,11 @@ def add_weighted_surface(
             code, person[:, 0] * width + person[:, 1]
         )
         surface = subset(surface, np.isin(code, kept) & ~out)
-    people = surface_noise(rec, tracks, surface, options)
-    if not any(np.isfinite(v).any() for v in people.sigma_px.values()):
-        return people, 0
+    noise = surface_noise(rec, tracks, surface, options)
+    if not any(np.isfinite(v).any() for v in noise.sigma_px.values()):
+        return noise, 0
     good, counts = add_keypoint_points(rec, surface, options.min_track_length)
-    return people, int(counts[good].sum())
+    return noise, int(counts[good].sum())
 
 
 def surface_noise(

@@ -11,6 +11,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 import pycolmap
@@ -65,54 +66,91 @@ def person_identities(
     return {k: index[find(k)] for k in parent}
 
 
-def keypoint_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTracks:
+@dataclass(frozen=True, kw_only=True, slots=True)
+class VcRecords:
+    """What `augment` wrote into a database, with the database's images, read once
+    (:func:`read_vc_records`): what the tracks by identity are made of."""
+
+    views: database.DatabaseViews
+    vc_keypoints: tuple[database.VcKeypoints, ...]  # per image, after its classic
+    pairs: tuple[database.PairVcMatches, ...]  # the kind each pair matched them as
+    identity: dict[tuple[int, int], int]  # (image id, person id) -> identity
+    run_info: dict[str, Any]  # augment's options and priors (database.read_run_info)
+
+    @property
+    def num_classic(self) -> dict[int, int]:
+        """Image id -> number of its classic keypoints (its VCs follow them)."""
+        return dict(
+            zip(
+                self.views.image_ids.tolist(),
+                self.views.num_keypoints.tolist(),
+                strict=True,
+            )
+        )
+
+    @property
+    def num_samples(self) -> int:
+        """The template's surface samples: keypoint k's track id is num_samples + k
+        (0: augment did not record it)."""
+        run = self.run_info.get("options", {})
+        return int(run.get("matching", {}).get("num_samples", 0)) if run else 0
+
+
+def read_vc_records(database_path: Path) -> VcRecords:
+    """The database's images, and the VCs, person associations and run options
+    `augment` wrote (none for a database it has not augmented)."""
+    vc_keypoints, pairs = database.read_virtual_correspondences(database_path)
+    return VcRecords(
+        views=database.read_views(database_path),
+        vc_keypoints=tuple(vc_keypoints),
+        pairs=tuple(pairs),
+        identity=person_identities(database.read_person_associations(database_path)),
+        run_info=database.read_run_info(database_path),
+    )
+
+
+def keypoint_tracks(records: VcRecords, image_ids: IndexArray) -> KeypointTracks:
     """The keypoint VCs of the given images, as tracks (person identity, keypoint).
 
     A VC keypoint is a keypoint when some pair matched it as ``HitKind.KEYPOINT``; its
     identity is its person's (``person_identities``) and its template track id.
     """
-    return body_tracks(database_path, image_ids, surface=False)
+    return body_tracks(records, image_ids, surface=False)
 
 
-def surface_tracks(database_path: Path, image_ids: IndexArray) -> KeypointTracks:
+def surface_tracks(records: VcRecords, image_ids: IndexArray) -> KeypointTracks:
     """The surface VCs of the given images, as tracks (person identity, template
     surface sample): one 3D point of the body seen (or hidden) in every view of the
     person, the X1 that all pairs of those views share."""
-    return body_tracks(database_path, image_ids, surface=True)
+    return body_tracks(records, image_ids, surface=True)
 
 
-def vc_identities(database_path: Path) -> dict[int, IndexArray]:
+def vc_identities(records: VcRecords) -> dict[int, IndexArray]:
     """Per image, the person identity (``person_identities``) of each of its VC
     keypoints, in their order after the classic keypoints (-1: none)."""
-    vc_keypoints, _ = database.read_virtual_correspondences(database_path)
-    identity = person_identities(database.read_person_associations(database_path))
     return {
         v.image_id: np.array(
-            [identity.get((v.image_id, int(p)), -1) for p in v.person_id],
+            [records.identity.get((v.image_id, int(p)), -1) for p in v.person_id],
             dtype=np.int64,
         )
-        for v in vc_keypoints  # loop over images
+        for v in records.vc_keypoints  # loop over images
     }
 
 
 def body_tracks(
-    database_path: Path, image_ids: IndexArray, *, surface: bool
+    records: VcRecords, image_ids: IndexArray, *, surface: bool
 ) -> KeypointTracks:
     """The keypoint (``surface`` False) or surface VCs of the given images as tracks
     by (person identity, template track id). A VC keypoint is a keypoint when some
     pair matched it as ``HitKind.KEYPOINT``, a surface sample when a pair matched it
     and none as a keypoint."""
-    views = database.read_views(database_path)
-    num_classic = dict(
-        zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
-    )
-    vc_keypoints, pairs = database.read_virtual_correspondences(database_path)
-    identity = person_identities(database.read_person_associations(database_path))
+    num_classic = records.num_classic
+    identity = records.identity
     is_kp: dict[int, np.ndarray] = {
-        v.image_id: np.zeros(len(v.track_id), dtype=bool) for v in vc_keypoints
+        v.image_id: np.zeros(len(v.track_id), dtype=bool) for v in records.vc_keypoints
     }
     used = {k: v.copy() for k, v in is_kp.items()}
-    for p in pairs:  # loop over image pairs, vectorized over VCs
+    for p in records.pairs:  # loop over image pairs, vectorized over VCs
         kp = p.kind == HitKind.KEYPOINT
         is_kp[p.image_id1][p.idx1[kp]] = True
         is_kp[p.image_id2][p.idx2[kp]] = True
@@ -121,7 +159,7 @@ def body_tracks(
     chosen = {k: used[k] & ~v for k, v in is_kp.items()} if surface else is_kp
     wanted = set(np.asarray(image_ids).tolist())
     parts = []
-    for v in vc_keypoints:  # loop over images
+    for v in records.vc_keypoints:  # loop over images
         if v.image_id not in wanted or not chosen[v.image_id].any():
             continue
         rows = np.flatnonzero(chosen[v.image_id])

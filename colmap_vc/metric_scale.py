@@ -47,11 +47,10 @@ import numpy as np
 import pycolmap
 from scipy.spatial.transform import Rotation
 
-from . import database
 from .keypoint_tracks import (
     KeypointTracks,
+    VcRecords,
     keypoint_tracks,
-    person_identities,
     triangulate_tracks,
 )
 from .structs import BoolArray, FloatArray, IndexArray, PersonPrior, ScenePriors
@@ -220,7 +219,7 @@ def relative_spread(values: FloatArray, centre: FloatArray | float) -> float:
 
 
 def estimate_metric_scale(
-    database_path: Path,
+    records: VcRecords,
     rec: pycolmap.Reconstruction,
     priors: ScenePriors,
     *,
@@ -228,7 +227,9 @@ def estimate_metric_scale(
     instant_of: Mapping[tuple[str, int], str] | None = None,
     relative_pose_sd_deg: float | None = None,
 ) -> MetricScale | None:
-    """Scale of ``rec`` in metres from its people's keypoints (module doc).
+    """Scale of ``rec`` in metres from its people's keypoints (module doc), their
+    tracks by identity from ``records`` (the database's,
+    :func:`~colmap_vc.keypoint_tracks.read_vc_records`).
 
     ``priors`` are keyed by the database's image names (for static cameras: the
     merged priors of the representative images). Keypoint tracks seen by fewer than
@@ -242,7 +243,7 @@ def estimate_metric_scale(
     its people alone: :data:`TWO_VIEW_POSE_SD_DEG`) adds the relative pose's
     part to the uncertainty.
     """
-    found = person_keypoints(database_path, rec, priors, min_track_length)
+    found = person_keypoints(records, rec, priors, min_track_length)
     if found is None:
         return None
     ratios = _ratios(found.tracks, found.points, found.views)
@@ -304,7 +305,7 @@ class PersonKeypoints:
 
 
 def person_keypoints(
-    database_path: Path,
+    records: VcRecords,
     rec: pycolmap.Reconstruction,
     priors: ScenePriors,
     min_track_length: int = 3,
@@ -314,16 +315,14 @@ def person_keypoints(
     where the model has fewer, or no track is longer: static cameras with uneven
     instants, three cameras and no instant seen by more than two). None without
     keypoint tracks."""
-    database_path = Path(database_path)
-    views = database.read_views(database_path)
+    views = records.views
     name_of = dict(zip(views.image_ids.tolist(), views.image_names, strict=True))
     registered = np.array(
         sorted(i for i, im in rec.images.items() if im.has_pose and i in name_of),
         dtype=np.int64,
     )
-    tracks = keypoint_tracks(database_path, registered)
-    run = database.read_run_info(database_path).get("options", {})
-    offset = int(run.get("matching", {}).get("num_samples", 0)) if run else 0
+    tracks = keypoint_tracks(records, registered)
+    offset = records.num_samples
     if tracks.num_tracks == 0 or tracks.keys is None or offset <= 0:
         return None
     X, counts = triangulate_tracks(rec, tracks)
@@ -332,11 +331,10 @@ def person_keypoints(
     good = (counts[tracks.track] >= min_track_length) & np.isfinite(
         X[tracks.track]
     ).all(axis=1)
-    identity = person_identities(database.read_person_associations(database_path))
     return PersonKeypoints(
         tracks=tracks,
         points=X,
-        views=_person_views(tracks, good, priors, name_of, offset, identity),
+        views=_person_views(tracks, good, priors, name_of, offset, records.identity),
         name_of=name_of,
         num_registered=len(registered),
     )

@@ -20,6 +20,7 @@ from colmap_vc.keypoint_tracks import (
     keypoint_tracks,
     mirrored_tracks,
     person_identities,
+    read_vc_records,
     subset,
     triangulate_tracks,
 )
@@ -70,7 +71,7 @@ def test_person_identities_follow_association_chains():
 def test_identity_tracks_triangulate_consistently(mapped):
     db, rec = mapped
     registered = np.array(list(rec.reg_image_ids()), dtype=np.int64)
-    tracks = keypoint_tracks(db, registered)
+    tracks = keypoint_tracks(read_vc_records(db), registered)
     assert tracks.num_tracks > 0
     # One observation per image and track.
     pairs = np.stack([tracks.track, tracks.image_id], axis=1)
@@ -95,7 +96,7 @@ def test_a_left_out_camera_no_longer_counts_in_keypoint_tracks(mapped):
     db, rec = mapped
     rec = pycolmap.Reconstruction(rec)
     registered = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
-    tracks = keypoint_tracks(db, registered)
+    tracks = keypoint_tracks(read_vc_records(db), registered)
     X_all, counts_all = triangulate_tracks(rec, tracks)
     gone = int(registered[0])
     for point_id in list(rec.point3D_ids()):
@@ -121,7 +122,7 @@ def test_tracks_without_one_image_equal_triangulating_the_others(mapped):
 
     db, rec = mapped
     registered = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
-    tracks = keypoint_tracks(db, registered)
+    tracks = keypoint_tracks(read_vc_records(db), registered)
     system = track_system(rec, tracks)
     for image_id in registered[:3]:
         mine = tracks.image_id == image_id
@@ -155,7 +156,7 @@ def test_keypoint_ba_pulls_perturbed_poses_back(dome_scene, mapped, rng):
     assert evaluate_reconstruction(perturbed, gt).median_error_deg > 3.0
     snapshot = {i: im.cam_from_world().matrix() for i, im in perturbed.images.items()}
     out, summary = keypoint_bundle_adjustment(
-        db, perturbed, KeypointBaOptions(surface_per_image=0.0)
+        read_vc_records(db), perturbed, KeypointBaOptions(surface_per_image=0.0)
     )
     assert summary.num_tracks > 0 and summary.num_surface_observations == 0
     assert evaluate_reconstruction(out, gt).median_error_deg < max(1.0, 2 * before)
@@ -176,7 +177,7 @@ def test_the_default_weighs_each_images_surface_points_to_a_fixed_total(
     first_vc = dict(
         zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
     )
-    kp = keypoint_tracks(db, np.array(sorted(rec.images)))
+    kp = keypoint_tracks(read_vc_records(db), np.array(sorted(rec.images)))
     keypoint_obs = set(zip(kp.image_id.tolist(), kp.point2D_idx.tolist(), strict=True))
     surface = [  # the VC-only points that observe no keypoint VC
         (e.image_id, e.point2D_idx)
@@ -191,7 +192,7 @@ def test_the_default_weighs_each_images_surface_points_to_a_fixed_total(
     assert len(surface) > 20 * rec.num_reg_images()  # many more than the budget
     perturbed = _turned(rec, rng, 5.0)
     options = KeypointBaOptions(surface_per_image=6.0)
-    out, summary = keypoint_bundle_adjustment(db, perturbed, options)
+    out, summary = keypoint_bundle_adjustment(read_vc_records(db), perturbed, options)
     assert summary.num_surface_observations == len(surface)
     assert summary.num_surface_observations_dropped == 0
     assert summary.people is not None
@@ -200,7 +201,7 @@ def test_the_default_weighs_each_images_surface_points_to_a_fixed_total(
         assert np.isfinite(sigma).sum() == len(mine)
         # Weights 1 / sigma^2 of the image's surface observations sum to 6.
         assert np.sum(sigma[mine] ** -2.0) == pytest.approx(6.0)
-    again, _ = keypoint_bundle_adjustment(db, perturbed, options)
+    again, _ = keypoint_bundle_adjustment(read_vc_records(db), perturbed, options)
     for i, im in out.images.items():
         assert np.array_equal(
             im.cam_from_world().matrix(), again.image(i).cam_from_world().matrix()
@@ -651,7 +652,7 @@ def test_gba_weights_surface_tracks_by_their_noise(dome_scene, mapped, rng):
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     perturbed = _turned(rec, rng, 5.0)
     out, summary = keypoint_bundle_adjustment(
-        db, perturbed, KeypointBaOptions(surface_tracks=True)
+        read_vc_records(db), perturbed, KeypointBaOptions(surface_tracks=True)
     )
     assert summary.people is not None and summary.num_surface_observations > 0
     assert summary.tracks is not None

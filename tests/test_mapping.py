@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import collections
 import dataclasses
 import hashlib
 import json
@@ -22,6 +23,7 @@ from colmap_vc.evaluation import (
     evaluate_reconstruction,
     poses_by_name,
 )
+from colmap_vc.keypoint_ba import KeypointBaOptions
 from colmap_vc.meshalign import mesh_alignment_poses
 from colmap_vc.metric_scale import PERSON_SIZE_SD
 from colmap_vc.outputs import marker_name
@@ -79,6 +81,61 @@ def test_augmented_dome_registers_every_image_accurately(
     again = np.array([p.error for p in written.points3D.values()])
     assert written.num_points3D() > 100 and np.allclose(errors, again)
     assert errors.max() < 1000.0  # a point behind a camera errs by 1e150 px
+
+
+READERS = (
+    "read_views",
+    "read_keypoints",
+    "read_matches",
+    "read_two_view_geometries",
+    "read_virtual_correspondences",
+    "read_person_associations",
+    "read_run_info",
+)
+
+
+@pytest.mark.parametrize("gba", [False, True], ids=["keypoint BA", "GBA"])
+def test_map_reads_each_input_from_the_database_once(
+    dome_scene, augmented, tmp_path, monkeypatch, gba
+):
+    """The images, what augment wrote, the two-view geometries and the priors are
+    read once; the refinement, the checks, the metric scale and the reasons for
+    unregistered images get them in memory (pycolmap's mapper reads its matches
+    from the database itself)."""
+    calls: collections.Counter[str] = collections.Counter()
+
+    def counted(name, read):
+        def wrapper(*args, **kwargs):
+            calls[name] += 1
+            return read(*args, **kwargs)
+
+        return wrapper
+
+    for name in READERS:
+        monkeypatch.setattr(database, name, counted(name, getattr(database, name)))
+    monkeypatch.setattr(
+        "colmap_vc.mapping.priors.read_priors", counted("read_priors", read_priors)
+    )
+    options = mapping.MappingOptions(
+        keypoint_ba_options=KeypointBaOptions(surface_tracks=gba)
+    )
+    _, summary = mapping.run(
+        augmented,
+        dome_scene / "images",
+        tmp_path / "sparse",
+        options,
+        priors_path=dome_scene / "gt" / "priors",
+    )
+    assert summary.num_registered == 6 and summary.metric_scale is not None
+    once = {
+        "read_views",
+        "read_two_view_geometries",
+        "read_virtual_correspondences",
+        "read_person_associations",
+        "read_run_info",
+        "read_priors",
+    }
+    assert dict(calls) == dict.fromkeys(once, 1), calls
 
 
 def test_the_written_points_lose_the_refinements_outliers(dome_scene, rng):
@@ -162,7 +219,9 @@ def test_verified_pairs_without_any_model_are_not_called_a_separate_component(
     says so, not that it lies in a component apart from registered images."""
     from colmap_vc.mapping.outputs import why_unregistered
 
-    reasons = why_unregistered(augmented, None)
+    views = database.read_views(augmented)
+    geometries = database.read_two_view_geometries(augmented, include_vc=True)
+    reasons = why_unregistered(views, geometries, None)
     assert len(reasons) == 6
     for why in reasons.values():
         assert "no model could be started" in why and "component" not in why, why

@@ -40,14 +40,21 @@ def map_images(
     db, priors = inputs.database_path, inputs.priors
     if len(inputs.mapped) == 2 and options.mapper is Mapper.AUTO:
         rec = strategies.two_view_initialised(
-            db, image_dir, output_dir / "0", options, priors, inputs.mapped
+            db,
+            inputs.views,
+            inputs.geometries,
+            image_dir,
+            output_dir / "0",
+            options,
+            priors,
+            inputs.mapped,
         )
         models: Models = {} if rec is None else {0: rec}
     elif options.mapper is Mapper.MESH:
         if priors is None:
             raise ValueError("the mesh mapper needs the priors (--priors)")
         rec = strategies.mesh_initialised(
-            db, image_dir, output_dir / "0", priors, options
+            db, inputs.views, image_dir, output_dir / "0", priors, options
         )
         models = {} if rec is None else {0: rec}
     elif options.mapper is Mapper.GLOBAL:
@@ -131,7 +138,12 @@ def _mesh_fallback(
         )
     logger.info("%s: mesh-initialised mapping instead", why)
     rec = strategies.mesh_initialised(
-        inputs.database_path, image_dir, output_dir / "mesh", priors, options
+        inputs.database_path,
+        inputs.views,
+        image_dir,
+        output_dir / "mesh",
+        priors,
+        options,
     )
     if rec is not None and (
         best is None

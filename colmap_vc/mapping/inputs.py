@@ -1,17 +1,22 @@
-"""What `map` reads before mapping, read once: the database's images, the static
-cameras, the priors and the keypoints' left/right counterparts."""
+"""What `map` reads from the database before mapping, read once: its images, what
+`augment` wrote (VCs, person associations, options), the two-view geometries, the
+static cameras, the priors and the keypoints' left/right counterparts. The
+mappers (pycolmap's, and the mesh- and two-view-initialised ones) read their
+matches from the database themselves."""
 
 from __future__ import annotations
 
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 from .. import database
-from ..static_cameras import StaticCameras, parse_static_cameras
+from ..keypoint_tracks import VcRecords, read_vc_records
+from ..static_cameras import StaticCameras, merge_priors, parse_static_cameras
 from ..structs import ScenePriors
 from .options import MappingOptions
-from .priors import keypoint_mirror, load_priors
+from .priors import keypoint_mirror, read_image_priors, with_associated_ids
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -19,11 +24,18 @@ class MapInputs:
     """The inputs of one `map` run (the database is the mapper's working copy)."""
 
     database_path: Path
-    views: database.DatabaseViews
+    records: VcRecords  # the images, and what augment wrote
+    geometries: Mapping[database.Pair, database.TwoViewGeometryRow]
     static: StaticCameras | None
     mapped: tuple[str, ...]  # the images the mapper sees: one per static camera
-    priors: ScenePriors | None
+    priors: ScenePriors | None  # static cameras: one merged view per camera
+    image_priors: ScenePriors | None  # each image's own people
     mirror: dict[int, int] | None  # template track id -> left/right counterpart's
+
+    @property
+    def views(self) -> database.DatabaseViews:
+        """The database's images and cameras."""
+        return self.records.views
 
     @property
     def focal_guessed(self) -> tuple[str, ...]:
@@ -55,32 +67,41 @@ class MapInputs:
 def read_inputs(
     database_path: Path, options: MappingOptions, priors_path: Path | None
 ) -> MapInputs:
-    """Read the database's images, the static cameras (given, else recorded by
-    `augment`), the priors (given, else recorded) and the keypoint mirror."""
-    views = database.read_views(database_path)
-    static = static_cameras(options, database_path, views.image_names)
+    """Read the database's images, what `augment` wrote, the two-view geometries,
+    the static cameras (given, else recorded by `augment`), the priors (given,
+    else recorded; anonymous people get the association's identities) and the
+    keypoint mirror."""
+    records = read_vc_records(database_path)
+    names = records.views.image_names
+    static = static_cameras(options, records.run_info, names)
     mapped = (
-        tuple(views.image_names)
+        tuple(names)
         if static is None
         else tuple(sorted({*static.representative.values(), *static.unmatched}))
     )
-    priors = load_priors(database_path, priors_path, views.image_names, static)
+    own = read_image_priors(records.run_info, priors_path, names)
+    image_priors = None if own is None else with_associated_ids(own, records)
+    priors = image_priors
+    if own is not None and static is not None:  # the views augment wrote
+        priors = with_associated_ids(merge_priors(own, static)[0], records)
     return MapInputs(
         database_path=database_path,
-        views=views,
+        records=records,
+        geometries=database.read_two_view_geometries(database_path, include_vc=True),
         static=static,
         mapped=mapped,
         priors=priors,
-        mirror=keypoint_mirror(database_path, priors),
+        image_priors=image_priors,
+        mirror=keypoint_mirror(records.num_samples, priors),
     )
 
 
 def static_cameras(
-    options: MappingOptions, database_path: Path, image_names: Sequence[str]
+    options: MappingOptions, run_info: Mapping[str, Any], image_names: Sequence[str]
 ) -> StaticCameras | None:
     """The static cameras given, else those `augment` recorded, else None."""
     pattern = options.static_cameras
     if pattern is None:
-        recorded = database.read_run_info(database_path).get("options", {})
+        recorded = run_info.get("options", {})
         pattern = recorded.get("static_cameras") if isinstance(recorded, dict) else None
     return None if not pattern else parse_static_cameras(pattern, image_names)

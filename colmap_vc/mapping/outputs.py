@@ -9,6 +9,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import logging
+from collections.abc import Mapping
 from pathlib import Path
 
 import pycolmap
@@ -132,11 +133,12 @@ def write_run_options(
 
 
 def why_unregistered(
-    database_path: Path, best: pycolmap.Reconstruction | None
+    views: database.DatabaseViews,
+    geometries: Mapping[database.Pair, database.TwoViewGeometryRow],
+    best: pycolmap.Reconstruction | None,
 ) -> dict[str, str]:
-    """A reason per image of the database missing from the model."""
-    views = database.read_views(database_path)
-    geometries = database.read_two_view_geometries(database_path, include_vc=True)
+    """A reason per image of the database (``views``, with its ``geometries``)
+    missing from the model."""
     registered = (
         set()
         if best is None

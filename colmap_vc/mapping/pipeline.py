@@ -50,11 +50,7 @@ from .outputs import (
     why_unregistered,
     write_run_options,
 )
-from .priors import (
-    leave_out_prior_outliers_inplace,
-    leave_out_tilted_inplace,
-    load_priors,
-)
+from .priors import leave_out_prior_outliers_inplace, leave_out_tilted_inplace
 from .up import refine_with_gravity_inplace, write_gravity
 
 logger = logging.getLogger(__name__)
@@ -208,7 +204,7 @@ def _map_copy(
     tracks = None
     if best is not None and best_key is not None and options.keypoint_ba:
         best, kba = keypoint_bundle_adjustment(
-            database_path, best, options.keypoint_ba_options, mirror=inputs.mirror
+            inputs.records, best, options.keypoint_ba_options, mirror=inputs.mirror
         )
         models[best_key] = best
         left_out.update(kba.left_out or {})
@@ -232,7 +228,7 @@ def _map_copy(
             # Two images left: their keypoint tracks alone barely hold the pose,
             # and the keypoint BA weighs their surface for two images.
             best, kba = keypoint_bundle_adjustment(
-                database_path, best, options.keypoint_ba_options, mirror=inputs.mirror
+                inputs.records, best, options.keypoint_ba_options, mirror=inputs.mirror
             )
             models[best_key] = best
             people, tracks = kba.people, kba.tracks
@@ -246,7 +242,6 @@ def _map_copy(
             best,
             inputs,
             image_dir,
-            priors_path,
             people,
             tracks,
             options.gravity_options,
@@ -276,7 +271,7 @@ def _map_copy(
         left_out.update(leave_out_unobserved_inplace(best))
         if best.num_reg_images() < 2:
             _no_model_left(output_dir, best, left_out)
-    scale, no_scale = _metric_scale(best, inputs, options, priors_path)
+    scale, no_scale = _metric_scale(best, inputs, options)
     if best is not None and _people_only_pair(best, inputs, options):
         logger.warning(
             "two images placed by their people alone: expect a relative "
@@ -304,7 +299,7 @@ def _map_copy(
     if best is not None and gravity is not None:
         write_gravity(output_dir / str(best_key), gravity)
     timings["scale_write"] = time.perf_counter() - lap
-    reasons = {**why_unregistered(database_path, best), **left_out}
+    reasons = {**why_unregistered(inputs.views, inputs.geometries, best), **left_out}
     if inputs.static is not None:
         reasons.update(static_members_left_out(left_out, inputs.static))
     if best is None:
@@ -395,10 +390,7 @@ def _check_against_meshes(
 
 
 def people_scale(
-    rec: pycolmap.Reconstruction,
-    inputs: MapInputs,
-    priors_path: Path | None,
-    options: MappingOptions,
+    rec: pycolmap.Reconstruction, inputs: MapInputs, options: MappingOptions
 ) -> MetricScale | None:
     """The metric scale of ``rec`` from its people (not applied; None without
     priors or triangulated keypoints). Static cameras: the instant of each merged
@@ -408,13 +400,11 @@ def people_scale(
     if inputs.priors is None:
         return None
     instant_of = None
-    if inputs.static is not None:
-        raw = load_priors(inputs.database_path, priors_path, inputs.views.image_names)
-        if raw is not None:
-            _, groups = merge_priors(raw, inputs.static)
-            instant_of = dict(groups)
+    if inputs.static is not None and inputs.image_priors is not None:
+        _, groups = merge_priors(inputs.image_priors, inputs.static)
+        instant_of = dict(groups)
     return estimate_metric_scale(
-        inputs.database_path,
+        inputs.records,
         rec,
         inputs.priors,
         instant_of=instant_of,
@@ -444,10 +434,7 @@ def _people_only_pair(
 
 
 def _metric_scale(
-    rec: pycolmap.Reconstruction | None,
-    inputs: MapInputs,
-    options: MappingOptions,
-    priors_path: Path | None,
+    rec: pycolmap.Reconstruction | None, inputs: MapInputs, options: MappingOptions
 ) -> tuple[MetricScale | None, str]:
     """Scale ``rec`` to metres from the people's size (in place) -> the estimate,
     or None and why not. Not where a registered image's focal length is a
@@ -464,7 +451,7 @@ def _metric_scale(
         )
         logger.info("metric scale: %s; scale arbitrary", why)
         return None, why
-    scale = people_scale(rec, inputs, priors_path, options)
+    scale = people_scale(rec, inputs, options)
     if scale is None:
         why = "no keypoint of a person with priors triangulated"
         logger.info("metric scale: %s; scale arbitrary", why)

@@ -21,10 +21,9 @@ from .. import database
 from ..estimators.body import anny_keypoint_mirror, body_axis_points
 from ..evaluation import poses_by_name, relative_pose, rotation_angle_deg
 from ..gravity import long_axis_up
-from ..keypoint_tracks import person_identities
+from ..keypoint_tracks import VcRecords, person_identities
 from ..meshalign import mesh_alignment, mesh_alignment_poses
 from ..priors import read_priors
-from ..static_cameras import StaticCameras, merge_priors
 from ..structs import ScenePriors
 
 logger = logging.getLogger(__name__)
@@ -86,7 +85,7 @@ def prior_deviation_deg(
 
 
 def keypoint_mirror(
-    database_path: Path, priors: ScenePriors | None
+    num_samples: int, priors: ScenePriors | None
 ) -> dict[int, int] | None:
     """Template track id -> its left/right counterpart's, for the camera check."""
     if priors is None:
@@ -95,11 +94,9 @@ def keypoint_mirror(
     perm = anny_keypoint_mirror(persons)
     if perm is None:
         return None
-    run = database.read_run_info(database_path).get("options", {})
-    offset = int(run.get("matching", {}).get("num_samples", 0))
-    if offset <= 0:
+    if num_samples <= 0:
         return None
-    return {offset + k: offset + int(j) for k, j in enumerate(perm.tolist())}
+    return {num_samples + k: num_samples + int(j) for k, j in enumerate(perm.tolist())}
 
 
 def leave_out_prior_outliers_inplace(
@@ -242,46 +239,40 @@ def _leave_out(rec: pycolmap.Reconstruction, image_id: int, reason: str) -> None
     rec.deregister_frame(rec.image(image_id).frame_id)
 
 
-def load_priors(
-    database_path: Path,
+def read_image_priors(
+    run_info: Mapping[str, object],
     priors_path: Path | None,
     image_names: tuple[str, ...],
-    static: StaticCameras | None = None,
 ) -> ScenePriors | None:
-    """The priors given, else those `augment` recorded in the database, else None."""
-    if priors_path is None:
-        recorded = database.read_run_info(database_path).get("priors")
-        if not recorded:
+    """The priors given, else those `augment` recorded in the database (its
+    ``run_info``), else None: each image's own people."""
+    if priors_path is not None:
+        return read_priors(priors_path, known_image_names=image_names)
+    recorded = run_info.get("priors")
+    if not recorded:
+        return None
+    try:
+        if not Path(str(recorded)).exists():
             return None
-        try:
-            if not Path(recorded).exists():
-                return None
-            priors = read_priors(Path(recorded), known_image_names=image_names)
-        except OSError as error:
-            raise OSError(
-                f"the priors augment used, {recorded} (recorded in the database), "
-                f"cannot be read ({error.strerror or error}): give --priors"
-            ) from error
-    else:
-        priors = read_priors(priors_path, known_image_names=image_names)
-    if static is not None:  # the views augment wrote: one per static camera
-        priors, _ = merge_priors(priors, static)
-    return with_associated_ids(priors, database_path)
+        return read_priors(Path(str(recorded)), known_image_names=image_names)
+    except OSError as error:
+        raise OSError(
+            f"the priors augment used, {recorded} (recorded in the database), "
+            f"cannot be read ({error.strerror or error}): give --priors"
+        ) from error
 
 
-def with_associated_ids(priors: ScenePriors, database_path: Path) -> ScenePriors:
-    """Anonymous people get the identity `augment`'s association gave them.
+def with_associated_ids(priors: ScenePriors, records: VcRecords) -> ScenePriors:
+    """Anonymous people get the identity `augment`'s association gave them
+    (``records``: the database's, :func:`~colmap_vc.keypoint_tracks.read_vc_records`).
 
     Mesh alignment (the auto mapper's check and the mesh-initialised mapper) pairs
     people by identity; with anonymous multi-person priors it could pair nobody.
     People the association left out stay anonymous.
     """
-    associations = database.read_person_associations(database_path)
-    if not associations:
-        return priors
-    views = database.read_views(database_path)
+    views = records.views
     id_of = dict(zip(views.image_names, views.image_ids.tolist(), strict=True))
-    return apply_associations(priors, associations, id_of)
+    return _with_identities(priors, records.identity, id_of)
 
 
 def apply_associations(
@@ -292,9 +283,18 @@ def apply_associations(
     """:func:`with_associated_ids` from the associations themselves (``id_of``:
     image name -> the database's image id), as `augment` computes them
     (``VirtualCorrespondences.associations``) before it writes them."""
-    if not associations:
+    return _with_identities(priors, person_identities(associations), id_of)
+
+
+def _with_identities(
+    priors: ScenePriors,
+    identity: Mapping[tuple[int, int], int],
+    id_of: Mapping[str, int],
+) -> ScenePriors:
+    """``priors`` with each anonymous person that ``identity`` ((image id, person
+    index) -> identity) names given an id above the ids the priors use."""
+    if not identity:
         return priors
-    identity = person_identities(associations)
     offset = 1 + max(
         (
             p.person_id

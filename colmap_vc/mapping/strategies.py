@@ -11,7 +11,7 @@ one place, :mod:`colmap_vc.mapping.choice`.
 from __future__ import annotations
 
 import logging
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -79,6 +79,7 @@ def global_(
 
 def mesh_initialised(
     database_path: Path,
+    views: database.DatabaseViews,
     image_dir: Path,
     output_dir: Path,
     priors: ScenePriors,
@@ -89,9 +90,8 @@ def mesh_initialised(
 
     Robust where two-view geometry from one person is not: mesh alignment is off by
     10-20 degrees but never flipped, and bundle adjustment over all views then pulls
-    the cameras to what the VC tracks say.
+    the cameras to what the VC tracks say. ``views``: the database's images.
     """
-    views = database.read_views(database_path)
     poses = mesh_alignment_poses(priors, image_names=set(views.image_names))
     if len(poses) < 2:
         return None
@@ -154,6 +154,8 @@ def mesh_initialised(
 
 def two_view_initialised(
     database_path: Path,
+    views: database.DatabaseViews,
+    geometries: Mapping[database.Pair, database.TwoViewGeometryRow],
     image_dir: Path,
     output_dir: Path,
     options: MappingOptions,
@@ -171,10 +173,10 @@ def two_view_initialised(
     two-image scene (the paper's two-frame task) is built here: camera 1 at the
     origin, camera 2 at the verified relative pose (unit baseline), the VC and
     classic inlier tracks triangulated. No Ceres BA (it cannot fix a two-camera
-    gauge); the generalized BA refines it with an explicit gauge.
+    gauge); the generalized BA refines it with an explicit gauge. ``views`` and
+    ``geometries``: the database's images and two-view geometries; the chosen
+    pair's keypoints are read here.
     """
-    views = database.read_views(database_path)
-    geometries = database.read_two_view_geometries(database_path, include_vc=True)
     wanted = set(
         views.image_ids.tolist()
         if image_names is None

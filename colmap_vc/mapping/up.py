@@ -43,7 +43,6 @@ from ..keypoint_tracks import (
     triangulate_tracks,
 )
 from .inputs import MapInputs
-from .priors import load_priors
 
 logger = logging.getLogger(__name__)
 
@@ -89,7 +88,6 @@ def refine_with_gravity_inplace(
     rec: pycolmap.Reconstruction,
     inputs: MapInputs,
     image_dir: Path,
-    priors_path: Path | None,
     people: PeopleNoise | None,
     tracks: KeypointTracks | None,
     options: GravityOptions,
@@ -102,8 +100,8 @@ def refine_with_gravity_inplace(
     (``loss_scale_px``: the reprojections' Cauchy scale; ``min_sigma_px`` and
     ``robust_sigmas``: the keypoint noise's floor and the up residuals' Cauchy
     scale in standard errors, as the keypoint BA's options give them; ``tracks``:
-    the keypoint tracks as the model holds them, None to read them from the
-    database)."""
+    the keypoint tracks as the model holds them, None to make them from the
+    database's records in ``inputs``)."""
     registered = {
         rec.image(i).name: i for i in rec.reg_image_ids() if rec.image(i).has_pose
     }
@@ -117,11 +115,7 @@ def refine_with_gravity_inplace(
         for name in registered
     }
     names = sorted({n for members in groups.values() for n in members})
-    raw = (  # each image's own people (static cameras: not the merged views)
-        inputs.priors
-        if inputs.static is None
-        else load_priors(inputs.database_path, priors_path, inputs.views.image_names)
-    )
+    raw = inputs.image_priors  # static cameras: not the merged views
     persons = {
         n: raw.images[n].persons for n in names if raw is not None and n in raw.images
     }
@@ -141,7 +135,7 @@ def refine_with_gravity_inplace(
         del registered[name]
     if tracks is None:
         registered_ids = np.array(sorted(registered.values()), dtype=np.int64)
-        tracks = keypoint_tracks(inputs.database_path, registered_ids)
+        tracks = keypoint_tracks(inputs.records, registered_ids)
     noise = keypoint_noise_px(rec, tracks, min_sigma_px)
     absorbed = absorbed_noise_px(rec, registered, measured, loss_scale_px, people)
     if noise is not None and absorbed is not None and absorbed > noise:
