@@ -55,13 +55,7 @@ class MapInputs:
     @property
     def num_classic(self) -> dict[int, int]:
         """Image id -> number of its classic keypoints (the VCs follow them)."""
-        return dict(
-            zip(
-                self.views.image_ids.tolist(),
-                self.views.num_keypoints.tolist(),
-                strict=True,
-            )
-        )
+        return self.records.num_classic
 
 
 def read_inputs(
