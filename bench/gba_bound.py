@@ -50,6 +50,7 @@ from colmap_vc.evaluation import evaluate_reconstruction, pose_auc
 from colmap_vc.gba.ceres import bundle_adjust_inplace
 from colmap_vc.keypoint_ba import KeypointBaOptions, surface_noise, with_loss_scale
 from colmap_vc.structs import HitKind
+from colmap_vc.vc_records import read_vc_records
 
 logger = logging.getLogger("bench.gba_bound")
 
@@ -244,7 +245,7 @@ def scene_errors(
     first_vc = dict(
         zip(views.image_ids.tolist(), views.num_keypoints.tolist(), strict=True)
     )
-    records = kt.read_vc_records(db)
+    records = read_vc_records(db)
     keypoints = kt.keypoint_tracks(records, ids)
     surface = kt.surface_tracks(records, ids)
     vis = visibility(db)

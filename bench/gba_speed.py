@@ -52,8 +52,8 @@ from colmap_vc.keypoint_tracks import (
     delete_points_observing,
     keypoint_observations,
     keypoint_tracks,
-    read_vc_records,
 )
+from colmap_vc.vc_records import read_vc_records
 
 logger = logging.getLogger("bench.gba_speed")
 

@@ -44,7 +44,6 @@ from colmap_vc.gba.noise import MAD_TO_SIGMA, reprojection_residuals
 from colmap_vc.keypoint_tracks import (
     KeypointTracks,
     keypoint_tracks,
-    read_vc_records,
     surface_tracks,
     triangulate_tracks,
 )
@@ -55,6 +54,7 @@ from colmap_vc.synthetic.fitted import (
     LANDMARK_SIGMA_3D,
     SHARED_SIGMA,
 )
+from colmap_vc.vc_records import read_vc_records
 
 logger = logging.getLogger("bench.landmark_noise")
 

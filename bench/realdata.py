@@ -54,8 +54,8 @@ from colmap_vc.evaluation import (
     pose_auc,
     poses_by_name,
 )
-from colmap_vc.keypoint_tracks import person_identities
 from colmap_vc.priors import read_priors
+from colmap_vc.vc_records import person_identities
 
 logger = logging.getLogger("bench.realdata")
 SHARED = ROOT.parent / "shared" / "data"

@@ -42,11 +42,11 @@ from colmap_vc.keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
     keypoint_tracks,
-    read_vc_records,
     subset,
     triangulate_tracks,
 )
 from colmap_vc.synthetic import bodies
+from colmap_vc.vc_records import read_vc_records
 
 logger = logging.getLogger("bench.static_ceiling")
 

@@ -36,7 +36,6 @@ from .gba.ceres import PeopleNoise, bundle_adjust_inplace
 from .gba.correlated import correlated_noise
 from .keypoint_tracks import (
     KeypointTracks,
-    VcRecords,
     add_keypoint_points,
     delete_points_observing,
     keypoint_observations,
@@ -48,6 +47,7 @@ from .keypoint_tracks import (
     vc_identities,
 )
 from .people_check import check_few_view_people, unchecked_people
+from .vc_records import VcRecords
 
 logger = logging.getLogger(__name__)
 
@@ -206,7 +206,7 @@ def keypoint_bundle_adjustment(
     """A copy of ``rec`` with keypoint tracks by identity, bundle-adjusted (module doc).
 
     ``rec`` is not modified. Without keypoint VCs in ``records`` (the database's
-    people, :func:`~colmap_vc.keypoint_tracks.read_vc_records`) it returns a
+    people, :func:`~colmap_vc.vc_records.read_vc_records`) it returns a
     plain copy.
     ``mirror`` (template track id -> its left/right counterpart's) lets the camera
     check try an image's people with left and right exchanged.

@@ -49,11 +49,11 @@ from scipy.spatial.transform import Rotation
 
 from .keypoint_tracks import (
     KeypointTracks,
-    VcRecords,
     keypoint_tracks,
     triangulate_tracks,
 )
 from .structs import BoolArray, FloatArray, IndexArray, PersonPrior, ScenePriors
+from .vc_records import VcRecords
 
 logger = logging.getLogger(__name__)
 
@@ -229,7 +229,7 @@ def estimate_metric_scale(
 ) -> MetricScale | None:
     """Scale of ``rec`` in metres from its people's keypoints (module doc), their
     tracks by identity from ``records`` (the database's,
-    :func:`~colmap_vc.keypoint_tracks.read_vc_records`).
+    :func:`~colmap_vc.vc_records.read_vc_records`).
 
     ``priors`` are keyed by the database's image names (for static cameras: the
     merged priors of the representative images). Keypoint tracks seen by fewer than
@@ -352,7 +352,7 @@ def _person_views(
     its keypoints that the prior places (indices into ``tracks``), the prior's
     3D point of each (camera frame, metres), and the prior person's index.
     ``identity``: (image id, database person id) -> identity
-    (:func:`~colmap_vc.keypoint_tracks.person_identities`)."""
+    (:func:`~colmap_vc.vc_records.person_identities`)."""
     assert tracks.keys is not None
     out = {}
     for image_id in np.unique(tracks.image_id[good]):  # loop over images

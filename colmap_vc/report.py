@@ -294,7 +294,7 @@ def _who(name: str, identity: dict[int, int], unseen: dict[str, str]) -> str:
 def _people_section(ctx: _Context) -> str:
     """Each image's VC keypoints coloured by their person's identity."""
     from colmap_vc import report_people
-    from colmap_vc.keypoint_tracks import person_identities
+    from colmap_vc.vc_records import person_identities
 
     identities = person_identities(
         database.read_person_associations(ctx.inputs.database_path)

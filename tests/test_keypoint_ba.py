@@ -19,12 +19,11 @@ from colmap_vc.keypoint_tracks import (
     add_keypoint_points,
     keypoint_tracks,
     mirrored_tracks,
-    person_identities,
-    read_vc_records,
     subset,
     triangulate_tracks,
 )
 from colmap_vc.mapping.up import keypoint_noise_px
+from colmap_vc.vc_records import person_identities, read_vc_records
 
 
 def _adjust(rec: pycolmap.Reconstruction) -> None:

@@ -12,9 +12,9 @@ from pathlib import Path
 from typing import Any
 
 from .. import database
-from ..keypoint_tracks import VcRecords, read_vc_records
 from ..static_cameras import StaticCameras, merge_priors, parse_static_cameras
 from ..structs import ScenePriors
+from ..vc_records import VcRecords, read_vc_records
 from .options import MappingOptions
 from .priors import keypoint_mirror, read_image_priors, with_associated_ids
 

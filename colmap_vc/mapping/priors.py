@@ -21,10 +21,10 @@ from .. import database
 from ..estimators.body import anny_keypoint_mirror, body_axis_points
 from ..evaluation import poses_by_name, relative_pose, rotation_angle_deg
 from ..gravity import long_axis_up
-from ..keypoint_tracks import VcRecords, person_identities
 from ..meshalign import mesh_alignment, mesh_alignment_poses
 from ..priors import read_priors
 from ..structs import ScenePriors
+from ..vc_records import VcRecords, person_identities
 
 logger = logging.getLogger(__name__)
 
@@ -264,7 +264,7 @@ def read_image_priors(
 
 def with_associated_ids(priors: ScenePriors, records: VcRecords) -> ScenePriors:
     """Anonymous people get the identity `augment`'s association gave them
-    (``records``: the database's, :func:`~colmap_vc.keypoint_tracks.read_vc_records`).
+    (``records``: the database's, :func:`~colmap_vc.vc_records.read_vc_records`).
 
     Mesh alignment (the auto mapper's check and the mesh-initialised mapper) pairs
     people by identity; with anonymous multi-person priors it could pair nobody.
