@@ -205,9 +205,8 @@ def keypoint_bundle_adjustment(
 ) -> tuple[pycolmap.Reconstruction, KeypointBaSummary]:
     """A copy of ``rec`` with keypoint tracks by identity, bundle-adjusted (module doc).
 
-    ``rec`` is not modified. Without keypoint VCs in ``records`` (the database's
-    people, :func:`~colmap_vc.vc_records.read_vc_records`) it returns a
-    plain copy.
+    ``rec`` is not modified. Without keypoint VCs in ``records`` (what `augment`
+    wrote, :func:`~colmap_vc.vc_records.read_vc_records`) it returns a plain copy.
     ``mirror`` (template track id -> its left/right counterpart's) lets the camera
     check try an image's people with left and right exchanged.
     """
