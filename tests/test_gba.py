@@ -307,3 +307,47 @@ def test_shared_errors_weighted_by_their_correlation_move_no_camera(dome_scene, 
     alone = errors["keypoints alone"]
     assert errors["independent"] > 1.3 * alone
     assert abs(errors["correlated"] - alone) < 0.1 * alone
+
+
+def test_the_adjustment_stops_once_the_cost_no_longer_changes(monkeypatch):
+    """COLMAP's options set no function tolerance, so its adjustments iterate until
+    the gradient tolerance or 100 iterations; colmap-vc's stop when an iteration
+    gains less than FUNCTION_TOLERANCE of the cost, at poses the full solve moves
+    by far less than their noise (1 px at f = 1280 over 600 points, ~0.003 deg)."""
+    from colmap_vc.gba import ceres
+
+    pycolmap.set_random_seed(0)
+    options = pycolmap.SyntheticDatasetOptions(
+        num_rigs=1,
+        num_cameras_per_rig=1,
+        num_frames_per_rig=12,
+        num_points3D=600,
+        camera_model_id=pycolmap.CameraModelId.PINHOLE,
+        camera_params=[1280.0, 1280.0, 512.0, 384.0],
+    )
+    rec = pycolmap.synthesize_dataset(options)
+    rng = np.random.default_rng(0)
+    for image in rec.images.values():  # loop over images: 1 px of noise
+        for p in image.points2D:
+            p.xy = p.xy + rng.normal(0.0, 1.0, 2)
+    for frame in rec.frames.values():  # loop over frames: perturbed poses
+        T = frame.rig_from_world
+        turn = pycolmap.Rotation3d(rng.normal(0.0, 0.01, 3))
+        frame.rig_from_world = pycolmap.Rigid3d(
+            turn * T.rotation, T.translation + rng.normal(0.0, 0.05, 3)
+        )
+    solved = {}
+    for tolerance in (ceres.FUNCTION_TOLERANCE, 0.0):
+        monkeypatch.setattr(ceres, "FUNCTION_TOLERANCE", tolerance)
+        r = pycolmap.Reconstruction(rec)
+        summary = bundle_adjust_inplace(r, 2.0)
+        solved[tolerance] = (r, summary)
+    (early, stop), (full, run) = solved.values()
+    assert stop.message.startswith("Function tolerance reached"), stop.message
+    iterations = stop.num_successful_steps + stop.num_unsuccessful_steps
+    assert 2 * iterations < run.num_successful_steps + run.num_unsuccessful_steps
+    assert stop.final_cost <= run.final_cost * (1 + 1e-5)
+    for image_id in rec.reg_image_ids():  # loop over images
+        a = early.image(image_id).cam_from_world()
+        b = full.image(image_id).cam_from_world()
+        assert np.degrees((a.rotation * b.rotation.inverse()).angle()) < 1e-3
