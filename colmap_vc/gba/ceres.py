@@ -50,8 +50,8 @@ class PeopleNoise:
 # people's residuals are whitened by their noise and the classic ones are pixels,
 # whose noise is about one, so a model of N observations at its noise costs about
 # N / 2 and this stops on a gain below 0.1 for N under 200k: a fifth of the 1/2
-# that moving one parameter by one standard deviation adds. Measured on every
-# benchmark row (docs/benchmark.md, "Bundle adjustment's stopping rule").
+# that moving one parameter by one standard deviation adds. Measured on the
+# benchmarks (docs/benchmark.md, "Bundle adjustment's stopping rule").
 FUNCTION_TOLERANCE = 1e-6
 
 
