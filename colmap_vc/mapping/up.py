@@ -12,20 +12,25 @@ deg against 1.11, when the step came, commit ec3cd4f). The residuals miss what
 the poses absorb, so the noise is at least what the cameras' tilts show against
 their ups (:func:`absorbed_noise_px`: 31 px there). A camera whose own image
 (its vertical lines and its people's up) contradicts the pose the people gave it
-leaves the model (:func:`contradicted_cameras`). What was measured and how well
-each camera agrees with it afterwards goes to ``gravity.json`` beside the model.
+leaves the model (:func:`contradicted_cameras`). When the cameras' own people say
+the adjustment turned them the wrong way (:func:`people_verdict`: lines that are
+not vertical, a geodesic dome's edges, can agree with each other and with the
+25-deg search cone), the model is put back as it was. What was measured and how
+well each camera agrees with it afterwards goes to ``gravity.json`` beside the model.
 """
 
 from __future__ import annotations
 
 import json
 import logging
-from dataclasses import dataclass
+from collections.abc import Mapping, Sequence
+from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import pycolmap
 
+from ..estimators.body import body_axis_points
 from ..gba.ceres import (
     PeopleNoise,
     ba_options,
@@ -34,7 +39,7 @@ from ..gba.ceres import (
 )
 from ..gba.noise import cluster_noise
 from ..gba.up import UpPriors
-from ..gravity import Gravity, GravityOptions, measure_gravity
+from ..gravity import Gravity, GravityOptions, long_axis_up, measure_gravity
 from ..keypoint_tracks import (
     KeypointTracks,
     keypoint_tracks,
@@ -42,6 +47,7 @@ from ..keypoint_tracks import (
     subset,
     triangulate_tracks,
 )
+from ..structs import PersonPrior
 from .inputs import MapInputs
 
 logger = logging.getLogger(__name__)
@@ -62,6 +68,8 @@ class GravityResult:
     used: bool  # False: fewer than two cameras measured, the model is unchanged
     left_out: dict[str, float]  # image name -> its up's angle to the others' (deg)
     cameras_left_out: dict[str, str]  # image name -> why it left the model
+    people: PeopleVerdict | None = None  # the people's ups on the step's turn
+    rejected: str | None = None  # why the adjusted model was not kept
 
 
 def keypoint_noise_px(
@@ -149,6 +157,8 @@ def refine_with_gravity_inplace(
         noise = absorbed
     keys = sorted(measured)
     used = len(keys) >= 2 and noise is not None
+    turn: PeopleVerdict | None = None
+    rejected: str | None = None
     if used:
         assert noise is not None
         up = UpPriors(
@@ -158,7 +168,24 @@ def refine_with_gravity_inplace(
             pixel_noise_px=noise,
             robust_sigmas=robust_sigmas,
         )
+        before = _Snapshot.of(rec)
         bundle_adjust_inplace(rec, loss_scale_px, people, up)
+        turn = people_verdict(
+            before.rotations, _rotations(rec), people_ups(persons, groups)
+        )
+        if turn is not None and turn.z > MAX_PEOPLE_Z:
+            before.restore(rec)
+            used = False
+            rejected = (
+                f"the ups turned the cameras by {turn.turn_deg:.1f} deg (rms over "
+                f"{turn.num_cameras}) and their people's ups, independent of the "
+                f"lines and of the model, say the turn is wrong (they spread "
+                f"{turn.spread_after_deg:.1f} deg after it, "
+                f"{turn.spread_before_deg:.1f} before; z = {turn.z:.1f} > "
+                f"{MAX_PEOPLE_Z:g}): the lines are not vertical (a dome's or a "
+                f"roof's edges), and the model is left as the people made it"
+            )
+            logger.warning("gravity: ups not used: %s", rejected)
     residual = _residuals_deg(rec, registered, measured)
     logger.info(
         "gravity: %d of %d cameras measured (keypoint noise %s px)%s; after: %s",
@@ -175,7 +202,158 @@ def refine_with_gravity_inplace(
         used=used,
         left_out=disagree,
         cameras_left_out=contradicted,
+        people=turn,
+        rejected=rejected,
     )
+
+
+MAX_PEOPLE_Z = 3.0
+"""The people's ups undo the gravity step when they say it turned the cameras the
+wrong way at more than three standard deviations (:func:`people_verdict`; a
+one-sided 0.13 % false alarm when the step is right). Measured: pose2sim_single
+and _multi's static cameras -1.4 and -0.9 (the people agree better after the
+step), the 32-camera static dome whose backdrop's edges gave 9 of 13 ups 13-31
+deg off +16.8 (docs/benchmark.md, "Static cameras at 128 images")."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class PeopleVerdict:
+    """What the people's ups say of the gravity step's turn (:func:`people_verdict`)."""
+
+    z: float  # about N(0, 1) when the turn is right; large: the people reject it
+    turn_deg: float  # the cameras' tilt change, rms over the cameras
+    spread_before_deg: float  # rms angle of the people's ups to their mean, before
+    spread_after_deg: float  # the same after the step
+    noise_deg: float  # the people's up noise per axis, from ``spread_before_deg``
+    num_cameras: int
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class _Snapshot:
+    """The poses and points of a model, to put back."""
+
+    rotations: dict[str, np.ndarray]  # posed image name -> cam_from_world rotation
+    frames: dict[int, np.ndarray]  # frame id -> rig_from_world (3, 4)
+    points: dict[int, np.ndarray]  # point id -> xyz
+
+    @classmethod
+    def of(cls, rec: pycolmap.Reconstruction) -> _Snapshot:
+        return cls(
+            rotations=_rotations(rec),
+            frames={
+                f: T.matrix()
+                for f in rec.reg_frame_ids()
+                if (T := rec.frame(f).rig_from_world) is not None
+            },
+            points={i: p.xyz.copy() for i, p in rec.points3D.items()},
+        )
+
+    def restore(self, rec: pycolmap.Reconstruction) -> None:
+        """Put the poses and points back (the adjustment moves nothing else)."""
+        for frame_id, T in self.frames.items():  # loop over frames
+            rec.frame(frame_id).rig_from_world = pycolmap.Rigid3d(T)
+        for point_id, xyz in self.points.items():  # loop over points
+            rec.point3D(point_id).xyz = xyz
+
+
+def _rotations(rec: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
+    """Posed image name -> its cam_from_world rotation (3, 3)."""
+    return {
+        im.name: im.cam_from_world().rotation.matrix()
+        for im in rec.images.values()
+        if im.has_pose
+    }
+
+
+def people_ups(
+    persons: Mapping[str, Sequence[PersonPrior]], groups: Mapping[str, Sequence[str]]
+) -> dict[str, np.ndarray]:
+    """Per camera of ``groups`` (a static camera pools its images): the mean of
+    its people's ups in its frame, each the long axis of the body off the arms
+    (:func:`~colmap_vc.estimators.body.body_axis_points`), anonymous people too:
+    everyone stands upright, within the pose estimator's error and their lean."""
+    out = {}
+    for name, members in sorted(groups.items()):  # loop over cameras
+        axes = [
+            long_axis_up(body_axis_points(p))
+            for m in members
+            for p in persons.get(m, ())
+        ]
+        if axes:
+            up = np.mean(axes, axis=0)
+            out[name] = up / np.linalg.norm(up)
+    return out
+
+
+def people_verdict(
+    before: Mapping[str, np.ndarray],
+    after: Mapping[str, np.ndarray],
+    people_up_cam: Mapping[str, np.ndarray],
+) -> PeopleVerdict | None:
+    """Whether the people's ups, a cue independent of the vertical lines, say
+    that the gravity step turned the cameras the wrong way.
+
+    ``before`` and ``after``: the cameras' rotations (cam_from_world) before and
+    after the step; ``people_up_cam``: each camera's people's up in its frame.
+    None with fewer than two cameras with people or no turn.
+
+    In each model the people's ups are turned into the world, u their mean; e_i
+    is camera i's angle to it, a 2D error n_i of per-axis variance sigma^2 (the
+    pose estimator's tilt error and the people's lean) plus the camera's tilt
+    error. The step turns camera i's tilt by d_i (the angle between u in its
+    frame before and after). If the step is right (it removes a tilt error
+    d_i), e_before^2 = |n_i + d_i|^2 and e_after^2 = |n_i|^2, so
+    sum(e_after^2 - e_before^2) has mean -D^2 (D^2 = sum |d_i|^2) and standard
+    deviation 2 sigma D; if it is wrong (it adds one), mean +D^2. The score
+    z = (sum(e_after^2 - e_before^2) + D^2) / (2 sigma D) is about N(0, 1) for
+    a right step and about D / sigma for a wrong one. sigma is read from the
+    spread before (2 (n - 1) sigma^2 = sum e_before^2), which holds the model's
+    own tilt errors too: an upper bound, so z errs towards keeping the step.
+    A turn of a degree against people's ups that scatter by 5 cannot reach
+    three; a turn of 10-20 deg of several cameras can (both measured:
+    :data:`MAX_PEOPLE_Z`).
+    """
+    names = sorted(set(before) & set(after) & set(people_up_cam))
+    if len(names) < 2:
+        return None
+    p = np.array([people_up_cam[n] for n in names])
+
+    def spread(R: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Per camera: the angle of its people's up to their mean in the world,
+        and that mean in its frame."""
+        Rs = np.array([R[n] for n in names])
+        world = np.einsum("nji,nj->ni", Rs, p)  # R^T p per camera
+        up = world.mean(axis=0)
+        up /= np.linalg.norm(up)
+        return np.arccos(np.clip(world @ up, -1.0, 1.0)), Rs @ up
+
+    e_before, up_before = spread(before)
+    e_after, up_after = spread(after)
+    cos = np.einsum("ni,ni->n", up_before, up_after)
+    D = float(np.sqrt((np.arccos(np.clip(cos, -1.0, 1.0)) ** 2).sum()))
+    sigma = float(np.sqrt((e_before**2).sum() / (2 * (len(names) - 1))))
+    if D < 1e-9 or sigma < 1e-9:
+        return None
+    z = ((e_after**2 - e_before**2).sum() + D**2) / (2 * sigma * D)
+    verdict = PeopleVerdict(
+        z=float(z),
+        turn_deg=float(np.degrees(D / np.sqrt(len(names)))),
+        spread_before_deg=float(np.degrees(np.sqrt(np.mean(e_before**2)))),
+        spread_after_deg=float(np.degrees(np.sqrt(np.mean(e_after**2)))),
+        noise_deg=float(np.degrees(sigma)),
+        num_cameras=len(names),
+    )
+    logger.info(
+        "gravity: the step turned %d cameras' tilts by %.2f deg rms; their people's "
+        "ups spread %.2f deg before, %.2f after (noise %.1f deg): z = %.2f",
+        verdict.num_cameras,
+        verdict.turn_deg,
+        verdict.spread_before_deg,
+        verdict.spread_after_deg,
+        verdict.noise_deg,
+        verdict.z,
+    )
+    return verdict
 
 
 def agreeing_ups(
@@ -380,6 +558,8 @@ def write_gravity(model_dir: Path, result: GravityResult) -> Path:
             for k, g in sorted(result.measured.items())
         },
         "left_out_deg": dict(sorted(result.left_out.items())),
+        "people": None if result.people is None else asdict(result.people),
+        "rejected": result.rejected,
         "cameras_left_out": dict(sorted(result.cameras_left_out.items())),
     }
     path.write_text(json.dumps(payload, indent=2) + "\n")
