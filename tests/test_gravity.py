@@ -29,9 +29,12 @@ from colmap_vc.gravity import (
     vertical_direction,
 )
 from colmap_vc.mapping.up import (
+    MAX_PEOPLE_Z,
     absorbed_noise_px,
     agreeing_ups,
     contradicted_cameras,
+    people_ups,
+    people_verdict,
 )
 from colmap_vc.structs import PersonPrior
 
@@ -626,3 +629,63 @@ def test_two_vanishing_points_of_different_lines_give_no_up(rng) -> None:
     assert vertical_direction(segments, truth, 700.0, GravityOptions()) is None
     alone = _as_segments(_segments_towards(tilt.apply(truth), rng, 40, 150.0))
     assert vertical_direction(alone, truth, 700.0, GravityOptions()) is not None
+
+
+def _tilted(R: np.ndarray, deg: float, rng) -> np.ndarray:
+    """``R`` (cam_from_world) with the camera turned by ``deg`` about a random
+    axis across its up (world +Z)."""
+    up = R @ WORLD_UP
+    axis = np.cross(up, rng.normal(size=3))
+    turn = Rotation.from_rotvec(np.radians(deg) * axis / np.linalg.norm(axis))
+    return turn.as_matrix() @ R
+
+
+def _ring(n: int, rng) -> dict[str, np.ndarray]:
+    """``n`` level cameras around the origin, looking in, by name."""
+    return {
+        f"cam{i:02d}": _cam_from_world(0.0, 0.0)
+        @ Rotation.from_euler("z", yaw, degrees=True).as_matrix()
+        for i, yaw in enumerate(rng.uniform(0, 360, n))
+    }
+
+
+def test_the_people_score_a_right_turn_as_noise_and_a_wrong_one_far_off() -> None:
+    """The score of :func:`people_verdict` on known turns: the people's ups (5
+    deg of noise per axis) of 12 cameras. A step that removes tilt errors scores
+    as a standard normal, whatever their size (0.5 or 3 deg: the larger ones
+    widen the noise read from the spread, so the score only narrows); one that
+    adds 10 deg errors to seven cameras scores about D / sigma, above the bound."""
+    rng = np.random.default_rng(0)
+    right_small, right, wrong = [], [], []
+    for _ in range(400):  # loop over random scenes
+        truth = _ring(12, rng)
+        people = {
+            n: (_tilted(R, float(np.hypot(*rng.normal(0, 5.0, 2))), rng) @ WORLD_UP)[
+                None
+            ]
+            for n, R in truth.items()
+        }
+        for out, error_deg in ((right_small, 0.5), (right, 3.0)):
+            before = {n: _tilted(R, error_deg, rng) for n, R in truth.items()}
+            verdict = people_verdict(before, truth, people)
+            assert verdict is not None
+            out.append(verdict.z)
+        after = {
+            n: _tilted(R, 10.0, rng) if k < 7 else R
+            for k, (n, R) in enumerate(sorted(truth.items()))
+        }
+        verdict = people_verdict(truth, after, people)
+        assert verdict is not None and verdict.num_cameras == 12
+        wrong.append(verdict.z)
+    assert abs(np.mean(right_small)) < 0.2 and 0.8 < np.std(right_small) < 1.2
+    assert abs(np.mean(right)) < 0.2 and np.std(right) < np.std(right_small)
+    for z in (right_small, right):
+        assert np.mean(np.array(z) > MAX_PEOPLE_Z) < 0.01
+    # About D / sigma = sqrt(7) * 10 / 5 = 5.3 standard deviations.
+    assert np.median(wrong) == pytest.approx(np.sqrt(7) * 10 / 5, rel=0.15)
+    assert np.mean(np.array(wrong) > MAX_PEOPLE_Z) > 0.95
+    # No turn, or fewer than two cameras with people: nothing to say.
+    truth = _ring(3, rng)
+    assert people_verdict(truth, truth, people_ups({}, {n: [n] for n in truth})) is None
+    up = {n: (R @ WORLD_UP)[None] for n, R in truth.items()}
+    assert people_verdict(truth, truth, up) is None

@@ -14,6 +14,7 @@ import numpy as np
 import pyceres
 import pycolmap
 import pytest
+from scipy.spatial.transform import Rotation
 
 from colmap_vc import augment, database, mapping
 from colmap_vc.baselines import colmap_incremental
@@ -699,11 +700,53 @@ def _with_pillars(scene, out):
     return gt
 
 
+@pytest.fixture(scope="module")
+def augmented_realistic(dome_scene, tmp_path_factory):
+    """The dome's database augmented with its realistic priors (noisy meshes)."""
+    db = tmp_path_factory.mktemp("map_realistic") / "database.db"
+    shutil.copyfile(dome_scene / "database.db", db)
+    augment.run(db, dome_scene / "priors", augment.AugmentOptions(show_progress=False))
+    return db
+
+
 def test_gravity_from_vertical_lines_is_measured_and_kept(
+    dome_scene, augmented_realistic, tmp_path
+):
+    """Pillars in the images and realistic people: every camera's up is
+    measured, the people's ups agree with the turn it makes, the cameras agree
+    on it after the adjustment (written beside the model), and the model is
+    better than without it."""
+    gt = _with_pillars(dome_scene, tmp_path / "images")
+    runs = {
+        gravity: mapping.run(
+            augmented_realistic,
+            tmp_path / "images",
+            tmp_path / f"sparse_{gravity}",
+            mapping.MappingOptions(num_threads=2, gravity=gravity),
+            priors_path=dome_scene / "priors",
+        )
+        for gravity in (False, True)
+    }
+    summary = runs[True][1]
+    assert summary.num_registered == runs[False][1].num_registered == 6
+    auc = {g: evaluate_reconstruction(r, gt).auc["15"] for g, (r, _) in runs.items()}
+    assert auc[True] > auc[False] + 2.0, auc
+    found = json.loads((summary.model_dir / "gravity.json").read_text())
+    assert found["used"] and len(found["cameras"]) >= 4 and found["rejected"] is None
+    assert found["people"]["z"] < 3.0 and found["people"]["turn_deg"] > 0.5
+    for name, camera in found["cameras"].items():
+        truth = gt.find_image_with_name(name).cam_from_world().rotation.matrix()[:, 2]
+        assert float(np.dot(camera["up_cam"], truth)) > 0.999
+        assert camera["residual_deg"] < 1.0
+
+
+def test_exact_people_overrule_vertical_lines_a_degree_off(
     dome_scene, augmented, tmp_path
 ):
-    """Pillars in the images: every camera's up is measured, the cameras agree on
-    it after the adjustment, and the model stays right (written beside it)."""
+    """The same pillars with exact people (the scene's true meshes and
+    keypoints): the model is exact without the lines, whose ups (each within
+    2.6 deg) would turn the cameras by about a degree. The people's ups agree
+    exactly before and not after: the step is undone, the model stays exact."""
     gt = _with_pillars(dome_scene, tmp_path / "images")
     rec, summary = mapping.run(
         augmented,
@@ -712,13 +755,67 @@ def test_gravity_from_vertical_lines_is_measured_and_kept(
         mapping.MappingOptions(num_threads=2, gravity=True),
     )
     assert summary.num_registered == 6
-    assert evaluate_reconstruction(rec, gt).auc["15"] > 90
+    assert evaluate_reconstruction(rec, gt).median_error_deg < 0.01
     found = json.loads((summary.model_dir / "gravity.json").read_text())
-    assert found["used"] and len(found["cameras"]) >= 4
-    for name, camera in found["cameras"].items():
-        truth = gt.find_image_with_name(name).cam_from_world().rotation.matrix()[:, 2]
-        assert float(np.dot(camera["up_cam"], truth)) > 0.999
-        assert camera["residual_deg"] < 1.0
+    assert len(found["cameras"]) >= 4 and not found["used"]
+    assert found["people"]["z"] > 3.0 and found["people"]["spread_before_deg"] < 0.01
+
+
+def test_ups_of_lines_that_are_not_vertical_are_undone_by_the_people(
+    dome_scene, augmented_realistic, tmp_path, monkeypatch
+):
+    """Every camera's "vertical" lines meet 18 deg off its up, each in its own
+    direction (a geodesic dome's edges do that), with a confident 0.5 deg error:
+    the ups agree with each other within the up check's cone, and the adjustment
+    turns the cameras to them. Their people's ups (realistic meshes) say the
+    turn is wrong, so the model is put back as the people made it, and
+    gravity.json says why."""
+    from colmap_vc.gravity import Gravity
+    from colmap_vc.mapping import up as up_step
+
+    gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
+    rng = np.random.default_rng(0)
+
+    def slanted(image_dir, groups, cameras, persons, options=None):
+        out = {}
+        for name in sorted(groups):  # loop over cameras
+            true = gt.find_image_with_name(name).cam_from_world().rotation.matrix()
+            up = true[:, 2]  # world Z in the camera
+            axis = np.cross(up, rng.normal(size=3))
+            turn = Rotation.from_rotvec(np.radians(18) * axis / np.linalg.norm(axis))
+            out[name] = Gravity(
+                up_cam=turn.apply(up),
+                sigma_rad=float(np.radians(0.5)),
+                num_segments=40,
+                num_images=1,
+                lines_px=np.zeros((0, 4)),
+                people_up_cam=up,
+            )
+        return out
+
+    def run(out: str) -> tuple[pycolmap.Reconstruction, mapping.MappingSummary]:
+        return mapping.run(
+            augmented_realistic,
+            dome_scene / "images",
+            tmp_path / out,
+            mapping.MappingOptions(num_threads=2),
+            priors_path=dome_scene / "priors",
+        )
+
+    monkeypatch.setattr(up_step, "measure_gravity", lambda *a, **k: {})
+    without, _ = run("without")  # no lines measured: the people's model
+    monkeypatch.setattr(up_step, "measure_gravity", slanted)
+    rec, summary = run("sparse")
+    found = json.loads((summary.model_dir / "gravity.json").read_text())
+    assert len(found["cameras"]) == 6 and not found["left_out_deg"]
+    assert not found["used"] and found["people"]["z"] > 3.0
+    assert "the turn is wrong" in found["rejected"]
+    assert found["people"]["turn_deg"] > 5.0
+    assert summary.num_registered == without.num_reg_images() == 6
+    for name in found["cameras"]:  # the poses put back exactly
+        a = rec.find_image_with_name(name).cam_from_world().matrix()
+        b = without.find_image_with_name(name).cam_from_world().matrix()
+        assert np.allclose(a, b, atol=1e-9)
 
 
 def test_when_the_checks_leave_fewer_than_two_images_there_is_no_model(

@@ -268,10 +268,11 @@ def _rotations(rec: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
 def people_ups(
     persons: Mapping[str, Sequence[PersonPrior]], groups: Mapping[str, Sequence[str]]
 ) -> dict[str, np.ndarray]:
-    """Per camera of ``groups`` (a static camera pools its images): the mean of
-    its people's ups in its frame, each the long axis of the body off the arms
+    """Per camera of ``groups`` (a static camera pools its images): its people's
+    ups in its frame (k, 3), each the long axis of a body off the arms
     (:func:`~colmap_vc.estimators.body.body_axis_points`), anonymous people too:
-    everyone stands upright, within the pose estimator's error and their lean."""
+    everyone stands upright, within the pose estimator's error and their lean.
+    Cameras without people are left out."""
     out = {}
     for name, members in sorted(groups.items()):  # loop over cameras
         axes = [
@@ -280,43 +281,51 @@ def people_ups(
             for p in persons.get(m, ())
         ]
         if axes:
-            up = np.mean(axes, axis=0)
-            out[name] = up / np.linalg.norm(up)
+            out[name] = np.array(axes)
     return out
 
 
 def people_verdict(
     before: Mapping[str, np.ndarray],
     after: Mapping[str, np.ndarray],
-    people_up_cam: Mapping[str, np.ndarray],
+    people_axes: Mapping[str, np.ndarray],
 ) -> PeopleVerdict | None:
     """Whether the people's ups, a cue independent of the vertical lines, say
     that the gravity step turned the cameras the wrong way.
 
     ``before`` and ``after``: the cameras' rotations (cam_from_world) before and
-    after the step; ``people_up_cam``: each camera's people's up in its frame.
-    None with fewer than two cameras with people or no turn.
+    after the step; ``people_axes``: each camera's people's ups in its frame
+    (:func:`people_ups`; a camera's up is their mean). None with fewer than two
+    cameras with people, or no turn.
 
-    In each model the people's ups are turned into the world, u their mean; e_i
-    is camera i's angle to it, a 2D error n_i of per-axis variance sigma^2 (the
-    pose estimator's tilt error and the people's lean) plus the camera's tilt
-    error. The step turns camera i's tilt by d_i (the angle between u in its
-    frame before and after). If the step is right (it removes a tilt error
-    d_i), e_before^2 = |n_i + d_i|^2 and e_after^2 = |n_i|^2, so
+    In each model the cameras' people's ups are turned into the world, u their
+    mean; e_i is camera i's angle to it, a 2D error n_i of per-axis variance
+    sigma^2 (the pose estimator's tilt error, and which people the camera
+    sees) plus the camera's tilt error. The step turns camera i's tilt by d_i
+    (the angle between u in its frame before and after). If the step is right (it removes
+    a tilt error d_i), e_before^2 = |n_i + d_i|^2 and e_after^2 = |n_i|^2, so
     sum(e_after^2 - e_before^2) has mean -D^2 (D^2 = sum |d_i|^2) and standard
     deviation 2 sigma D; if it is wrong (it adds one), mean +D^2. The score
     z = (sum(e_after^2 - e_before^2) + D^2) / (2 sigma D) is about N(0, 1) for
-    a right step and about D / sigma for a wrong one. sigma is read from the
-    spread before (2 (n - 1) sigma^2 = sum e_before^2), which holds the model's
-    own tilt errors too: an upper bound, so z errs towards keeping the step.
-    A turn of a degree against people's ups that scatter by 5 cannot reach
-    three; a turn of 10-20 deg of several cameras can (both measured:
-    :data:`MAX_PEOPLE_Z`).
+    a right step and about D / sigma for a wrong one.
+
+    sigma is read from the spread before (2 (n - 1) sigma^2 = sum e_before^2).
+    It holds the model's own tilt errors too, which makes z err towards keeping
+    the step. It misses the meshes' errors where the model's tilts follow the
+    same meshes (the surface VCs come from them): then a right step can score
+    high and is undone, which leaves the people's model, not a wrong camera.
+    The people's lean is not noise here: one body at one instant leans the same
+    way in every camera. With exact meshes (the tests' clean priors) the spread
+    is zero and any turn is a contradiction, rightly: the people are then
+    exact. A turn of a degree against people's ups that scatter by several
+    cannot reach three; a turn of 10-20 deg of several cameras can (both
+    measured: :data:`MAX_PEOPLE_Z`).
     """
-    names = sorted(set(before) & set(after) & set(people_up_cam))
+    names = sorted(set(before) & set(after) & set(people_axes))
     if len(names) < 2:
         return None
-    p = np.array([people_up_cam[n] for n in names])
+    mean = np.array([people_axes[n].mean(axis=0) for n in names])
+    p = mean / np.linalg.norm(mean, axis=1, keepdims=True)
 
     def spread(R: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Per camera: the angle of its people's up to their mean in the world,
@@ -325,14 +334,13 @@ def people_verdict(
         world = np.einsum("nji,nj->ni", Rs, p)  # R^T p per camera
         up = world.mean(axis=0)
         up /= np.linalg.norm(up)
-        return np.arccos(np.clip(world @ up, -1.0, 1.0)), Rs @ up
+        return _angles(world, up[None]), Rs @ up
 
     e_before, up_before = spread(before)
     e_after, up_after = spread(after)
-    cos = np.einsum("ni,ni->n", up_before, up_after)
-    D = float(np.sqrt((np.arccos(np.clip(cos, -1.0, 1.0)) ** 2).sum()))
+    D = float(np.sqrt((_angles(up_before, up_after) ** 2).sum()))
     sigma = float(np.sqrt((e_before**2).sum() / (2 * (len(names) - 1))))
-    if D < 1e-9 or sigma < 1e-9:
+    if D == 0.0 or sigma == 0.0:
         return None
     z = ((e_after**2 - e_before**2).sum() + D**2) / (2 * sigma * D)
     verdict = PeopleVerdict(
@@ -354,6 +362,12 @@ def people_verdict(
         verdict.z,
     )
     return verdict
+
+
+def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Row-wise angles (rad) between unit vectors (n, 3), exact near zero."""
+    a, b = np.broadcast_arrays(a, b)
+    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), (a * b).sum(axis=1))
 
 
 def agreeing_ups(
