@@ -654,7 +654,8 @@ def test_the_people_score_a_right_turn_as_noise_and_a_wrong_one_far_off() -> Non
     deg of noise per axis) of 12 cameras. A step that removes tilt errors scores
     as a standard normal, whatever their size (0.5 or 3 deg: the larger ones
     widen the noise read from the spread, so the score only narrows); one that
-    adds 10 deg errors to seven cameras scores about D / sigma, above the bound."""
+    adds 10 deg errors to seven cameras scores about D / sigma, above the bound.
+    With two cameras the score is a Student's t of two degrees of freedom."""
     rng = np.random.default_rng(0)
     right_small, right, wrong = [], [], []
     for _ in range(400):  # loop over random scenes
@@ -676,14 +677,32 @@ def test_the_people_score_a_right_turn_as_noise_and_a_wrong_one_far_off() -> Non
         }
         verdict = people_verdict(truth, after, people)
         assert verdict is not None and verdict.num_cameras == 12
-        wrong.append(verdict.z)
+        assert verdict.dof == 22
+        wrong.append((verdict.t, verdict.z))
     assert abs(np.mean(right_small)) < 0.2 and 0.8 < np.std(right_small) < 1.2
     assert abs(np.mean(right)) < 0.2 and np.std(right) < np.std(right_small)
     for z in (right_small, right):
         assert np.mean(np.array(z) > MAX_PEOPLE_Z) < 0.01
-    # About D / sigma = sqrt(7) * 10 / 5 = 5.3 standard deviations.
-    assert np.median(wrong) == pytest.approx(np.sqrt(7) * 10 / 5, rel=0.15)
-    assert np.mean(np.array(wrong) > MAX_PEOPLE_Z) > 0.95
+    # t about D / sigma = sqrt(7) * 10 / 5 = 5.3.
+    assert np.median([t for t, _ in wrong]) == pytest.approx(5.3, rel=0.15)
+    assert np.mean([z > MAX_PEOPLE_Z for _, z in wrong]) > 0.9
+    # Two cameras: the noise rests on two degrees of freedom, so a right step's
+    # t is often above 3 (about 5 %), its z is not (0.13 %).
+    pair = []
+    for _ in range(1000):  # loop over random pairs
+        truth = _ring(2, rng)
+        people = {
+            n: (_tilted(R, float(np.hypot(*rng.normal(0, 5.0, 2))), rng) @ WORLD_UP)[
+                None
+            ]
+            for n, R in truth.items()
+        }
+        before = {n: _tilted(R, 3.0, rng) for n, R in truth.items()}
+        verdict = people_verdict(before, truth, people)
+        assert verdict is not None and verdict.dof == 2
+        pair.append((verdict.t, verdict.z))
+    assert np.mean([t > 3.0 for t, _ in pair]) > 0.02
+    assert np.mean([z > MAX_PEOPLE_Z for _, z in pair]) < 0.005
     # No turn, or fewer than two cameras with people: nothing to say.
     truth = _ring(3, rng)
     assert people_verdict(truth, truth, people_ups({}, {n: [n] for n in truth})) is None
