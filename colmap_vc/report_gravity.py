@@ -21,6 +21,7 @@ from colmap_vc.structs import FloatArray
 
 LINE_BGR = (60, 200, 60)
 ARROW_BGR = (230, 120, 0)
+PEOPLE_BGR = (200, 60, 220)
 
 
 def up_arrow_px(
@@ -41,24 +42,30 @@ def draw_gravity(
     lines_px: FloatArray,
     arrow_px: tuple[FloatArray, FloatArray],
     height: int,
+    people_arrow_px: tuple[FloatArray, FloatArray] | None = None,
 ) -> np.ndarray:
-    """The image scaled to ``height`` with the supporting lines and the up arrow."""
+    """The image scaled to ``height`` with the supporting lines, the up arrow
+    and, when given, the people's up arrow."""
     import cv2
 
     canvas, scale = fit_height(image_bgr, height)
     thickness = max(1, height // 240)
     ends = (np.asarray(lines_px, dtype=np.float64).reshape(-1, 2, 2) - 0.5) * scale
     polylines(canvas, ends, np.tile(LINE_BGR, (len(ends), 1)), thickness)
-    start, end = (np.round((p - 0.5) * scale).astype(int) for p in arrow_px)
-    cv2.arrowedLine(
-        canvas,
-        (int(start[0]), int(start[1])),
-        (int(end[0]), int(end[1])),
-        ARROW_BGR,
-        2 * thickness,
-        cv2.LINE_AA,
-        tipLength=0.2,
-    )
+    arrows = [(arrow_px, ARROW_BGR)]
+    if people_arrow_px is not None:
+        arrows.append((people_arrow_px, PEOPLE_BGR))
+    for arrow, colour in arrows:  # the lines' up, then the people's
+        start, end = (np.round((p - 0.5) * scale).astype(int) for p in arrow)
+        cv2.arrowedLine(
+            canvas,
+            (int(start[0]), int(start[1])),
+            (int(end[0]), int(end[1])),
+            colour,
+            2 * thickness,
+            cv2.LINE_AA,
+            tipLength=0.2,
+        )
     return canvas
 
 
@@ -74,13 +81,20 @@ def gravity_section(
     parts = [
         '<section id="gravity"><h2>Gravity</h2>',
         '<p class="sub">The vertical lines (green) each camera\'s up was fitted to, '
-        "and that up (blue arrow); the final model's cameras agree on one up "
-        '(docs/real-data.md, "Why people alone stop at 2-3 degrees").</p>',
+        "that up (blue arrow) and its people's up (magenta arrow, the hint the "
+        "lines were searched near); when the ups were used, the final model's "
+        'cameras agree on one up (docs/real-data.md, "Why people alone stop at '
+        '2-3 degrees").</p>',
     ]
     found = None if model_path is None else Path(model_path) / "gravity.json"
     if found is None or not found.is_file():
         return ""
-    measured = json.loads(found.read_text()).get("cameras", {})
+    content = json.loads(found.read_text())
+    measured = content.get("cameras", {})
+    if content.get("rejected"):
+        parts.append(
+            f'<p class="missing">The ups were not used: {esc(content["rejected"])}.</p>'
+        )
     if not measured:
         parts.append(
             '<p class="sub">No camera has 20 agreeing vertical lines (a scene '
@@ -92,11 +106,13 @@ def gravity_section(
     for name, g in sorted(measured.items()):  # loop over the measured cameras
         if name not in cameras:
             continue
+        people = g.get("people_up_cam")
         panel = draw_gravity(
             read_image(name),
             np.asarray(g.get("lines_px", []), dtype=np.float64),
             up_arrow_px(cameras[name], np.asarray(g["up_cam"])),
             height,
+            None if people is None else up_arrow_px(cameras[name], np.asarray(people)),
         )
         after = g.get("residual_deg")
         parts.append(

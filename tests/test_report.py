@@ -463,8 +463,10 @@ def test_gravity_section_draws_the_lines_of_each_measured_camera(
     run: Run, tmp_path: Path
 ) -> None:
     """A model with gravity.json beside it: one panel per measured camera, its
-    lines drawn in green; a model without one has no gravity section."""
-    from colmap_vc.report_gravity import LINE_BGR
+    lines drawn in green and its people's up in magenta; when the people undid
+    the step, the section says why; a model without the file has no gravity
+    section."""
+    from colmap_vc.report_gravity import LINE_BGR, PEOPLE_BGR
 
     model = tmp_path / "model"
     shutil.copytree(run.model_path, model)
@@ -475,7 +477,7 @@ def test_gravity_section_draws_the_lines_of_each_measured_camera(
     (model / "gravity.json").write_text(
         json.dumps(
             {
-                "used": True,
+                "used": False,
                 "pixel_noise_px": 10.0,
                 "cameras": {
                     image.name: {
@@ -485,8 +487,10 @@ def test_gravity_section_draws_the_lines_of_each_measured_camera(
                         "num_images": 1,
                         "residual_deg": 0.1,
                         "lines_px": lines,
+                        "people_up_cam": up.tolist(),
                     }
                 },
+                "rejected": "their people's ups say the turn is wrong (test)",
             }
         )
     )
@@ -499,6 +503,9 @@ def test_gravity_section_draws_the_lines_of_each_measured_camera(
     assert list(panels) == [f"vertical lines of {image.name}"]
     green = np.abs(panels[f"vertical lines of {image.name}"].astype(int) - LINE_BGR)
     assert (green.max(-1) < 40).sum() > 50  # the five lines
+    magenta = np.abs(panels[f"vertical lines of {image.name}"].astype(int) - PEOPLE_BGR)
+    assert (magenta.max(-1) < 40).sum() > 20  # the people's up
+    assert "The ups were not used: their people&#x27;s ups say the turn" in page
     assert "5 lines in 1 image(s), up +-0.30 deg" in page
     without = build_report(
         ReportInputs(**common, model_path=run.model_path), tmp_path / "without.html"

@@ -590,6 +590,9 @@ def write_gravity(model_dir: Path, result: GravityResult) -> Path:
                 "num_segments": g.num_segments,
                 "num_images": g.num_images,
                 "residual_deg": result.residual_deg.get(k),
+                "people_up_cam": (
+                    None if g.people_up_cam is None else g.people_up_cam.tolist()
+                ),
                 "lines_px": np.round(g.lines_px, 1).tolist(),
             }
             for k, g in sorted(result.measured.items())
