@@ -28,13 +28,11 @@ from colmap_vc.gravity import (
     people_up,
     vertical_direction,
 )
+from colmap_vc.mapping.people_up import MAX_PEOPLE_Z, people_ups, people_verdict
 from colmap_vc.mapping.up import (
-    MAX_PEOPLE_Z,
     absorbed_noise_px,
     agreeing_ups,
     contradicted_cameras,
-    people_ups,
-    people_verdict,
 )
 from colmap_vc.structs import PersonPrior
 

@@ -13,7 +13,7 @@ the poses absorb, so the noise is at least what the cameras' tilts show against
 their ups (:func:`absorbed_noise_px`: 31 px there). A camera whose own image
 (its vertical lines and its people's up) contradicts the pose the people gave it
 leaves the model (:func:`contradicted_cameras`). When the cameras' own people say
-the adjustment turned them the wrong way (:func:`people_verdict`: lines that are
+the adjustment turned them the wrong way (:mod:`.people_up`: lines that are
 not vertical, a geodesic dome's edges, can agree with each other and with the
 25-deg search cone), the model is put back as it was. What was measured and how
 well each camera agrees with it afterwards goes to ``gravity.json`` beside the model.
@@ -23,16 +23,12 @@ from __future__ import annotations
 
 import json
 import logging
-from collections.abc import Mapping, Sequence
 from dataclasses import asdict, dataclass
 from pathlib import Path
 
 import numpy as np
 import pycolmap
-from scipy.stats import norm as normal
-from scipy.stats import t as student_t
 
-from ..estimators.body import body_axis_points
 from ..gba.ceres import (
     PeopleNoise,
     ba_options,
@@ -41,7 +37,7 @@ from ..gba.ceres import (
 )
 from ..gba.noise import cluster_noise
 from ..gba.up import UpPriors
-from ..gravity import Gravity, GravityOptions, long_axis_up, measure_gravity
+from ..gravity import Gravity, GravityOptions, measure_gravity
 from ..keypoint_tracks import (
     KeypointTracks,
     keypoint_tracks,
@@ -49,8 +45,8 @@ from ..keypoint_tracks import (
     subset,
     triangulate_tracks,
 )
-from ..structs import PersonPrior
 from .inputs import MapInputs
+from .people_up import MAX_PEOPLE_Z, PeopleVerdict, people_ups, people_verdict
 
 logger = logging.getLogger(__name__)
 
@@ -184,8 +180,8 @@ def refine_with_gravity_inplace(
                 f"lines and of the model, say the turn is wrong (they spread "
                 f"{turn.spread_after_deg:.1f} deg after it, "
                 f"{turn.spread_before_deg:.1f} before; z = {turn.z:.1f} > "
-                f"{MAX_PEOPLE_Z:g}): the lines are not vertical (a dome's or a "
-                f"roof's edges), and the model is left as the people made it"
+                f"{MAX_PEOPLE_Z:g}): the lines are likely not vertical (a dome's or "
+                f"a roof's edges), and the model is left as the people made it"
             )
             logger.warning("gravity: ups not used: %s", rejected)
     residual = _residuals_deg(rec, registered, measured)
@@ -207,32 +203,6 @@ def refine_with_gravity_inplace(
         people=turn,
         rejected=rejected,
     )
-
-
-MAX_PEOPLE_Z = 3.0
-"""The people's ups undo the gravity step when they say it turned the cameras the
-wrong way at more than three standard deviations (:func:`people_verdict`; a
-one-sided 0.13 % false alarm when the step is right and the people's ups are
-independent of the model). Measured: at most 1.99 over pose2sim's runs
-(per instant, static cameras, subsets of two and three cameras: 121 runs,
-where the lines are within 2.4 deg of the calibration), the 32-camera static
-dome whose backdrop's edges gave 9 of 13 ups 13-31 deg off 7.15
-(docs/real-data.md, "The people judge the step")."""
-
-
-@dataclass(frozen=True, kw_only=True, slots=True)
-class PeopleVerdict:
-    """What the people's ups say of the gravity step's turn (:func:`people_verdict`)."""
-
-    z: float  # about N(0, 1) when the turn is right; large: the people reject it
-    t: float | None  # the score, Student's t with ``dof`` for a right turn; None:
-    # the people agreed exactly before (z then reads 37)
-    dof: int  # the people's noise's degrees of freedom, 2 (cameras - 1)
-    turn_deg: float  # the cameras' tilt change, rms over the cameras
-    spread_before_deg: float  # rms angle of the people's ups to their mean, before
-    spread_after_deg: float  # the same after the step
-    noise_deg: float  # the people's up noise per axis, from ``spread_before_deg``
-    num_cameras: int
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -270,127 +240,6 @@ def _rotations(rec: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
         for im in rec.images.values()
         if im.has_pose
     }
-
-
-def people_ups(
-    persons: Mapping[str, Sequence[PersonPrior]], groups: Mapping[str, Sequence[str]]
-) -> dict[str, np.ndarray]:
-    """Per camera of ``groups`` (a static camera pools its images): its people's
-    ups in its frame (k, 3), each the long axis of a body off the arms
-    (:func:`~colmap_vc.estimators.body.body_axis_points`), anonymous people too:
-    everyone stands upright, within the pose estimator's error and their lean.
-    Cameras without people are left out."""
-    out = {}
-    for name, members in sorted(groups.items()):  # loop over cameras
-        axes = [
-            long_axis_up(body_axis_points(p))
-            for m in members
-            for p in persons.get(m, ())
-        ]
-        if axes:
-            out[name] = np.array(axes)
-    return out
-
-
-def people_verdict(
-    before: Mapping[str, np.ndarray],
-    after: Mapping[str, np.ndarray],
-    people_axes: Mapping[str, np.ndarray],
-) -> PeopleVerdict | None:
-    """Whether the people's ups, a cue independent of the vertical lines, say
-    that the gravity step turned the cameras the wrong way.
-
-    ``before`` and ``after``: the cameras' rotations (cam_from_world) before and
-    after the step; ``people_axes``: each camera's people's ups in its frame
-    (:func:`people_ups`; a camera's up is their mean). None with fewer than two
-    cameras with people, or no turn.
-
-    In each model the cameras' people's ups are turned into the world, u their
-    mean; e_i is camera i's angle to it, a 2D error n_i of per-axis variance
-    sigma^2 (the pose estimator's tilt error, and which people the camera
-    sees) plus the camera's tilt error. The step turns camera i's tilt by d_i
-    (the angle between u in its frame before and after). If the step is right
-    (it removes a tilt error d_i), e_before^2 = |n_i + d_i|^2 and
-    e_after^2 = |n_i|^2, so sum(e_after^2 - e_before^2) has mean -D^2
-    (D^2 = sum |d_i|^2) and standard deviation 2 sigma D; if it is wrong (it
-    adds one), mean +D^2. The score
-    t = (sum(e_after^2 - e_before^2) + D^2) / (2 sigma D) is about N(0, 1) for
-    a right step and about D / sigma for a wrong one.
-
-    sigma is read from the spread before (2 (n - 1) sigma^2 = sum e_before^2,
-    2 (n - 1) degrees of freedom), so the score is a Student's t, and ``z`` is
-    the standard normal's score of the same tail: with two or four cameras a
-    few degrees of freedom make a large t likely (the one-sided 0.13 % tail is
-    t = 19.2 with two cameras, 4.9 with four, 3.1 with 32). The spread before
-    holds the model's own tilt errors, which makes z err towards keeping the
-    step. It can also fall short: where the model's tilts follow the same
-    meshes (the surface VCs come from them), the people agree with it better
-    than with the truth, and a right step moves the cameras away from them
-    (pose2sim per instant, four cameras: spread 4.9 deg before a right 1.9 deg
-    turn, 6.4 after; t = 2.55, z = 2.02). Where the model follows the meshes
-    entirely, a right step is undone; that leaves the people's model, not a
-    wrong camera. With exact meshes (the tests' clean priors) the spread
-    before is zero and any turn counts against the step, rightly: the people
-    are then exact. Measured: :data:`MAX_PEOPLE_Z`.
-    """
-    names = sorted(set(before) & set(after) & set(people_axes))
-    if len(names) < 2:
-        return None
-    mean = np.array([people_axes[n].mean(axis=0) for n in names])
-    p = mean / np.linalg.norm(mean, axis=1, keepdims=True)
-
-    def spread(R: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
-        """Per camera: the angle of its people's up to their mean in the world,
-        and that mean in its frame."""
-        Rs = np.array([R[n] for n in names])
-        world = np.einsum("nji,nj->ni", Rs, p)  # R^T p per camera
-        up = world.mean(axis=0)
-        up /= np.linalg.norm(up)
-        return _angles(world, up[None]), Rs @ up
-
-    e_before, up_before = spread(before)
-    e_after, up_after = spread(after)
-    D = float(np.sqrt((_angles(up_before, up_after) ** 2).sum()))
-    dof = 2 * (len(names) - 1)
-    sigma = float(np.sqrt((e_before**2).sum() / dof))
-    if D == 0.0:
-        return None
-    score = None
-    tail = 0.0  # the people agreed exactly before: any turn is against them
-    if sigma > 0:
-        score = float(((e_after**2 - e_before**2).sum() + D**2) / (2 * sigma * D))
-        tail = float(student_t.sf(score, dof))
-    verdict = PeopleVerdict(
-        # The tail of Student's t as a standard normal's score (under 1e-300: 37).
-        z=float(normal.isf(max(tail, 1e-300))),
-        t=score,
-        dof=dof,
-        turn_deg=float(np.degrees(D / np.sqrt(len(names)))),
-        spread_before_deg=float(np.degrees(np.sqrt(np.mean(e_before**2)))),
-        spread_after_deg=float(np.degrees(np.sqrt(np.mean(e_after**2)))),
-        noise_deg=float(np.degrees(sigma)),
-        num_cameras=len(names),
-    )
-    logger.info(
-        "gravity: the step turned %d cameras' tilts by %.2f deg rms; their people's "
-        "ups spread %.2f deg before, %.2f after (noise %.1f deg): t = %s with %d "
-        "degrees of freedom, z = %.2f",
-        verdict.num_cameras,
-        verdict.turn_deg,
-        verdict.spread_before_deg,
-        verdict.spread_after_deg,
-        verdict.noise_deg,
-        "-" if verdict.t is None else f"{verdict.t:.2f}",
-        verdict.dof,
-        verdict.z,
-    )
-    return verdict
-
-
-def _angles(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Row-wise angles (rad) between unit vectors (n, 3), exact near zero."""
-    a, b = np.broadcast_arrays(a, b)
-    return np.arctan2(np.linalg.norm(np.cross(a, b), axis=1), (a * b).sum(axis=1))
 
 
 def agreeing_ups(
