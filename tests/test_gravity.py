@@ -647,6 +647,15 @@ def _ring(n: int, rng) -> dict[str, np.ndarray]:
     }
 
 
+def _people_of(truth: dict[str, np.ndarray], deg: float, rng) -> dict:
+    """Per camera one person's up (1, 3): the true up in its frame, off by a 2D
+    normal error of ``deg`` per axis."""
+    return {
+        n: (_tilted(R, float(np.hypot(*rng.normal(0, deg, 2))), rng) @ WORLD_UP)[None]
+        for n, R in truth.items()
+    }
+
+
 def test_the_people_score_a_right_turn_as_noise_and_a_wrong_one_far_off() -> None:
     """The score of :func:`people_verdict` on known turns: the people's ups (5
     deg of noise per axis) of 12 cameras. A step that removes tilt errors scores
@@ -658,12 +667,7 @@ def test_the_people_score_a_right_turn_as_noise_and_a_wrong_one_far_off() -> Non
     right_small, right, wrong = [], [], []
     for _ in range(400):  # loop over random scenes
         truth = _ring(12, rng)
-        people = {
-            n: (_tilted(R, float(np.hypot(*rng.normal(0, 5.0, 2))), rng) @ WORLD_UP)[
-                None
-            ]
-            for n, R in truth.items()
-        }
+        people = _people_of(truth, 5.0, rng)
         for out, error_deg in ((right_small, 0.5), (right, 3.0)):
             before = {n: _tilted(R, error_deg, rng) for n, R in truth.items()}
             verdict = people_verdict(before, truth, people)
@@ -689,12 +693,7 @@ def test_the_people_score_a_right_turn_as_noise_and_a_wrong_one_far_off() -> Non
     pair = []
     for _ in range(1000):  # loop over random pairs
         truth = _ring(2, rng)
-        people = {
-            n: (_tilted(R, float(np.hypot(*rng.normal(0, 5.0, 2))), rng) @ WORLD_UP)[
-                None
-            ]
-            for n, R in truth.items()
-        }
+        people = _people_of(truth, 5.0, rng)
         before = {n: _tilted(R, 3.0, rng) for n, R in truth.items()}
         verdict = people_verdict(before, truth, people)
         assert verdict is not None and verdict.dof == 2
