@@ -31,10 +31,12 @@ MAX_PEOPLE_Z = 3.0
 wrong way at more than three standard deviations (:func:`people_verdict`; a
 one-sided 0.13 % false alarm when the step is right and the people's ups are
 independent of the model). Measured, where the lines are within 2.4 deg of the
-calibration: at most z = 2.04 over 116 pose2sim runs of four cameras (per
-instant and static) and 2.46 over 102 runs of two and three (bench/subsets.py);
-the 32-camera static dome whose backdrop's edges gave 9 of 13 ups 13-31 deg off:
-10.3 (docs/real-data.md, "The people judge the step")."""
+calibration: at most z = 2.18 over 155 pose2sim runs of four cameras (per
+instant, static, resized, cropped, grey) and 2.46 over 102 runs of two and three
+(bench/subsets.py). Where the ups are wrong: 3.11 on pose2sim without its
+intrinsics (a guessed focal bends every vanishing direction); the 32-camera
+static dome whose backdrop's edges gave 9 of 13 ups 13-31 deg off: 10.3
+(docs/real-data.md, "The people judge the step")."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
