@@ -82,10 +82,11 @@ def people_verdict(
     """Whether the people's ups, a cue independent of the vertical lines, say
     that the gravity step turned the cameras the wrong way.
 
-    ``before`` and ``after``: the cameras' rotations (cam_from_world) before and
-    after the step; ``people_axes``: each camera's people's ups in its frame
-    (:func:`people_ups`; a camera's up is their mean). None with fewer than two
-    cameras with people, or no turn.
+    ``before`` and ``after``: the cameras' cam_from_world before and after the
+    step, by name (3, 4) as :func:`~colmap_vc.evaluation.poses_by_name` gives
+    them, or their rotations (3, 3); ``people_axes``: each camera's people's
+    ups in its frame (:func:`people_ups`; a camera's up is their mean). None
+    with fewer than two cameras with people, or no turn.
 
     In each model the cameras' people's ups are turned into the world, u their
     mean; e_i is camera i's angle to it, a 2D error n_i of per-axis variance
@@ -124,7 +125,7 @@ def people_verdict(
     def spread(R: Mapping[str, np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
         """Per camera: the angle of its people's up to their mean in the world,
         and that mean in its frame."""
-        Rs = np.array([R[n] for n in names])
+        Rs = np.array([R[n][:, :3] for n in names])
         world = np.einsum("nji,nj->ni", Rs, p)  # R^T p per camera
         up = world.mean(axis=0)
         up /= np.linalg.norm(up)

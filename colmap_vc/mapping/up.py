@@ -29,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 
+from ..evaluation import poses_by_name
 from ..gba.ceres import (
     PeopleNoise,
     ba_options,
@@ -167,9 +168,10 @@ def refine_with_gravity_inplace(
             robust_sigmas=robust_sigmas,
         )
         before = _Snapshot.of(rec)
+        posed_before = poses_by_name(rec)
         bundle_adjust_inplace(rec, loss_scale_px, people, up)
         turn = people_verdict(
-            before.rotations, _rotations(rec), people_ups(persons, groups)
+            posed_before, poses_by_name(rec), people_ups(persons, groups)
         )
         if turn is not None and turn.z > MAX_PEOPLE_Z:
             before.restore(rec)
@@ -209,14 +211,12 @@ def refine_with_gravity_inplace(
 class _Snapshot:
     """The poses and points of a model, to put back."""
 
-    rotations: dict[str, np.ndarray]  # posed image name -> cam_from_world rotation
     frames: dict[int, np.ndarray]  # frame id -> rig_from_world (3, 4)
     points: dict[int, np.ndarray]  # point id -> xyz
 
     @classmethod
     def of(cls, rec: pycolmap.Reconstruction) -> _Snapshot:
         return cls(
-            rotations=_rotations(rec),
             frames={
                 f: T.matrix()
                 for f in rec.reg_frame_ids()
@@ -231,15 +231,6 @@ class _Snapshot:
             rec.frame(frame_id).rig_from_world = pycolmap.Rigid3d(T)
         for point_id, xyz in self.points.items():  # loop over points
             rec.point3D(point_id).xyz = xyz
-
-
-def _rotations(rec: pycolmap.Reconstruction) -> dict[str, np.ndarray]:
-    """Posed image name -> its cam_from_world rotation (3, 3)."""
-    return {
-        im.name: im.cam_from_world().rotation.matrix()
-        for im in rec.images.values()
-        if im.has_pose
-    }
 
 
 def agreeing_ups(
