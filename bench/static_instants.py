@@ -1,21 +1,24 @@
 """More instants of static cameras: 1, 2, 5, 10, 20 instants from the pose2sim videos.
 
 The user's path for videos of static cameras (docs/real-data.md, "Static cameras"):
-`colmap-vc frames` on the four videos of Pose2Sim's Demo_SinglePerson (with their
-frame offsets), `colmap-vc priors`, then `augment` and `map` with
+`colmap-vc frames` on the four videos of Pose2Sim's Demo_SinglePerson (or, with
+``--dataset multi``, Demo_MultiPerson: two people and a bystander) with their frame
+offsets, `colmap-vc priors`, then `augment` and `map` with
 ``--static-cameras '(cam\\d+)_f'``, against the calibration of ../shared/data/
-pose2sim_single (the same cameras). The videos ship inside the `pose2sim` wheel on
-PyPI (version 0.10.49); the bench downloads that wheel once into bench/out/cache.
+pose2sim_single or pose2sim_multi (the same cameras). The videos ship inside the
+`pose2sim` wheel on PyPI (version 0.10.49); the bench downloads that wheel once into
+bench/out/cache.
 
 The instants are chosen once, 20 of them, by `frames`' farthest-point sampling; its
 order is greedy, so its first N instants are the N it would choose, and each row uses
 them. Priors are computed once for the 80 frames (the estimator works per image).
 
-    .venv/bin/python bench/static_instants.py [--instants 1 2 5 10 20]
+    .venv/bin/python bench/static_instants.py [--dataset multi] [--instants 1 2 5 20]
 
 `map` runs twice on each augmented database: with `--no-gravity` and as is.
 
-Writes bench/out/static_instants.json and the "instants" section of docs/results.md.
+Writes bench/out/static_instants.json and the "instants" section of docs/results.md
+(with ``--dataset multi``: static_instants_multi.json, "instants-multi").
 """
 
 from __future__ import annotations
@@ -54,14 +57,14 @@ from colmap_vc.frames import extract_frames
 logger = logging.getLogger("bench.static_instants")
 
 WHEEL = "pose2sim-0.10.49-py3-none-any.whl"
-VIDEOS = "Pose2Sim/Demo_SinglePerson/videos"
+DEMOS = {"single": "Demo_SinglePerson", "multi": "Demo_MultiPerson"}
 PATTERN = r"(cam\d+)_f"
 VARIANTS = {"map --no-gravity": ["--no-gravity"], "map": []}
 CACHE = OUT / "cache"
 
 
-def videos() -> list[Path]:
-    """The four videos of Demo_SinglePerson, from the cached pose2sim wheel."""
+def videos(demo: str) -> list[Path]:
+    """The four videos of one of pose2sim's demos, from the cached wheel."""
     wheel = CACHE / WHEEL
     if not wheel.exists():
         CACHE.mkdir(parents=True, exist_ok=True)
@@ -73,13 +76,13 @@ def videos() -> list[Path]:
             ],
             check=True,
         )
-    out = CACHE / "Demo_SinglePerson"
+    out = CACHE / demo
     paths = [out / f"cam0{k}.mp4" for k in range(1, 5)]
     if not all(p.exists() for p in paths):
         out.mkdir(parents=True, exist_ok=True)
         with zipfile.ZipFile(wheel) as z:
             for p in paths:
-                p.write_bytes(z.read(f"{VIDEOS}/{p.name}"))
+                p.write_bytes(z.read(f"Pose2Sim/{demo}/videos/{p.name}"))
     return paths
 
 
@@ -102,6 +105,7 @@ def cam_of(name: str) -> str:
 
 
 def run(
+    data: Path,
     num: int,
     instants: list[int],
     work: Path,
@@ -109,7 +113,6 @@ def run(
     priors: Path,
     map_only: bool = False,
 ) -> dict:
-    data = SHARED / "pose2sim_single"
     calib, gt_shared = load_calibration(data)
     cameras = {cam_of(n): c for n, c in calib.items()}
     gt_cam = {cam_of(n): g for n, g in gt_shared.items()}
@@ -178,6 +181,7 @@ def _evaluate(rec, gt_cam: dict) -> dict:
 
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--dataset", choices=sorted(DEMOS), default="single")
     parser.add_argument("--instants", nargs="+", type=int, default=[1, 2, 5, 10, 20])
     parser.add_argument(
         "--map-only",
@@ -187,21 +191,22 @@ def main() -> None:
     )
     args = parser.parse_args()
     setup_logging()
-    work = OUT / "static_instants"
+    suffix = "" if args.dataset == "single" else f"_{args.dataset}"
+    data = SHARED / f"pose2sim_{args.dataset}"
+    demo = DEMOS[args.dataset]
+    work = OUT / f"static_instants{suffix}"
     frames = work / "frames"
     offsets = [
         c["video_frame_offset"]
-        for c in json.loads((SHARED / "pose2sim_single" / "cameras.json").read_text())[
-            "cameras"
-        ]
+        for c in json.loads((data / "cameras.json").read_text())["cameras"]
     ]
     most = max(args.instants)
-    summary = extract_frames(videos(), frames, offsets=offsets, num_instants=most)
+    summary = extract_frames(videos(demo), frames, offsets=offsets, num_instants=most)
     instants = [int(t) for t in summary.instants]  # farthest-point order
     priors = work / "priors"
     if not (priors / "priors.json").exists():
         names = sorted(summary.written)
-        calib, _ = load_calibration(SHARED / "pose2sim_single")
+        calib, _ = load_calibration(data)
         cameras = {n.split("_")[0]: c for n, c in calib.items()}
         db = work / "all.db"
         (work / "_all").mkdir(exist_ok=True)
@@ -219,9 +224,12 @@ def main() -> None:
         )
         assert code == 0, f"priors failed ({code})"
     results = {
-        n: run(n, instants, work, frames, priors, args.map_only) for n in args.instants
+        n: run(data, n, instants, work, frames, priors, args.map_only)
+        for n in args.instants
     }
-    write_json("static_instants.json", {"machine": machine(), "results": results})
+    write_json(
+        f"static_instants{suffix}.json", {"machine": machine(), "results": results}
+    )
     lines = [
         "| instants | `map` | images | registered | AUC@15 | AUC@30 | AUC@45 "
         "| median pair error (deg) | pair errors (deg) "
@@ -242,10 +250,12 @@ def main() -> None:
     lines += [
         "",
         f"Measured at commit {machine()['commit']} by `.venv/bin/python "
-        f"bench/static_instants.py --instants {' '.join(map(str, args.instants))}"
+        "bench/static_instants.py"
+        f"{'' if args.dataset == 'single' else ' --dataset ' + args.dataset}"
+        f" --instants {' '.join(map(str, args.instants))}"
         f"{' --map-only' if args.map_only else ''}`: "
-        "the four videos of Pose2Sim's Demo_SinglePerson (pose2sim 0.10.49 on PyPI, "
-        f"frame offsets {offsets} from ../shared/data/pose2sim_single/cameras.json), "
+        f"the four videos of Pose2Sim's {demo} (pose2sim 0.10.49 on PyPI, "
+        f"frame offsets {offsets} from ../shared/data/{data.name}/cameras.json), "
         "`colmap-vc frames` (20 instants by farthest-point sampling; the first N "
         "for N instants), `priors`, `augment --static-cameras "
         f"'{PATTERN}'`, then `map` with the same option on it, with `--no-gravity` "
@@ -256,10 +266,13 @@ def main() -> None:
             else ""
         ),
     ]
+    title = "## Static cameras: more instants from the videos" + (
+        "" if args.dataset == "single" else ", two people and a bystander"
+    )
     replace_section(
         DOCS / "results.md",
-        "instants",
-        "## Static cameras: more instants from the videos\n\n" + "\n".join(lines),
+        "instants" + suffix.replace("_", "-"),
+        title + "\n\n" + "\n".join(lines),
     )
     print("\n".join(lines))
 
