@@ -28,7 +28,7 @@ import json
 import logging
 import shutil
 import time
-from collections.abc import Mapping
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 
 import numpy as np
@@ -55,6 +55,7 @@ from colmap_vc.evaluation import (
     poses_by_name,
 )
 from colmap_vc.priors import read_priors
+from colmap_vc.structs import PersonPrior
 from colmap_vc.vc_records import person_identities
 
 logger = logging.getLogger("bench.realdata")
@@ -204,6 +205,26 @@ def _box_iou(a: np.ndarray, b: np.ndarray) -> np.ndarray:
     return inter / (area(a)[:, None] + area(b)[None, :] - inter)
 
 
+def person_labels(persons: Sequence[PersonPrior], labels: list[dict]) -> dict[int, str]:
+    """The hand label of each of an image's prior persons that has one (by index):
+    the label whose box overlaps the box of the person's valid 2D keypoints most
+    (IoU >= 0.3, one person per label, greedy)."""
+    boxes = []
+    for p in persons:
+        ok = p.keypoints_valid if p.keypoints_valid is not None else slice(None)
+        xy = p.keypoints_xy[ok]
+        boxes.append([*xy.min(axis=0), *xy.max(axis=0)])
+    label_of: dict[int, str] = {}
+    if boxes and labels:
+        iou = _box_iou(np.array(boxes), np.array([lb["box"] for lb in labels], float))
+        while iou.max() >= 0.3:
+            k, j = np.unravel_index(np.argmax(iou), iou.shape)
+            label_of[int(k)] = labels[j]["label"]
+            iou[k, :] = -1.0
+            iou[:, j] = -1.0
+    return label_of
+
+
 def association_accuracy(priors_dir: Path, db: Path, labels: dict) -> dict:
     """Links between people of different images against the hand labels.
 
@@ -218,20 +239,7 @@ def association_accuracy(priors_dir: Path, db: Path, labels: dict) -> dict:
     identity = person_identities(database.read_person_associations(db))
     people = []  # (image, label or None, identity or -1)
     for name, ip in sorted(priors.images.items()):
-        boxes = []
-        for p in ip.persons:
-            ok = p.keypoints_valid if p.keypoints_valid is not None else slice(None)
-            xy = p.keypoints_xy[ok]
-            boxes.append([*xy.min(axis=0), *xy.max(axis=0)])
-        lab = labels.get(name, [])
-        label_of: dict[int, str] = {}
-        if boxes and lab:
-            iou = _box_iou(np.array(boxes), np.array([lb["box"] for lb in lab], float))
-            while iou.max() >= 0.3:
-                k, j = np.unravel_index(np.argmax(iou), iou.shape)
-                label_of[int(k)] = lab[j]["label"]
-                iou[k, :] = -1.0
-                iou[:, j] = -1.0
+        label_of = person_labels(ip.persons, labels.get(name, []))
         for k in range(len(ip.persons)):
             people.append((name, label_of.get(k), identity.get((ids[name], k), -1)))
     true = pred = correct = 0

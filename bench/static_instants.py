@@ -15,7 +15,8 @@ them. Priors are computed once for the 80 frames (the estimator works per image)
 
     .venv/bin/python bench/static_instants.py [--dataset multi] [--instants 1 2 5 20]
 
-`map` runs twice on each augmented database: with `--no-gravity` and as is.
+`map` runs three times on each augmented database: with `--no-gravity`, as is, and
+with `--gba` (the generalized bundle adjustment, issue 12).
 
 Writes bench/out/static_instants.json and the "instants" section of docs/results.md
 (with ``--dataset multi``: static_instants_multi.json, "instants-multi").
@@ -59,7 +60,7 @@ logger = logging.getLogger("bench.static_instants")
 WHEEL = "pose2sim-0.10.49-py3-none-any.whl"
 DEMOS = {"single": "Demo_SinglePerson", "multi": "Demo_MultiPerson"}
 PATTERN = r"(cam\d+)_f"
-VARIANTS = {"map --no-gravity": ["--no-gravity"], "map": []}
+VARIANTS = {"map --no-gravity": ["--no-gravity"], "map": [], "map --gba": ["--gba"]}
 CACHE = OUT / "cache"
 
 
@@ -258,8 +259,8 @@ def main() -> None:
         f"frame offsets {offsets} from ../shared/data/{data.name}/cameras.json), "
         "`colmap-vc frames` (20 instants by farthest-point sampling; the first N "
         "for N instants), `priors`, `augment --static-cameras "
-        f"'{PATTERN}'`, then `map` with the same option on it, with `--no-gravity` "
-        "and as is; the six camera pairs against the calibration."
+        f"'{PATTERN}'`, then `map` with the same option on it, with `--no-gravity`, "
+        "as is and with `--gba`; the six camera pairs against the calibration."
         + (
             " `--map-only`: `map` on the augmented databases of the previous run."
             if args.map_only

@@ -14,7 +14,7 @@ import logging
 import signal
 import sqlite3
 import sys
-from collections.abc import Callable, Sequence
+from collections.abc import Callable, Mapping, Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING, Any
@@ -428,9 +428,38 @@ def _run_priors(cmd: Priors) -> int:
         f"{summary.num_images_with_people}/{summary.num_images} "
         f"images -> {summary.priors_path} ({summary.seconds:.0f} s)\n"
     )
-    for name, reason in summary.skipped.items():
-        sys.stdout.write(f"  skipped {name}: {reason}\n")
+    for names, reason in _by_reason(summary.skipped):
+        sys.stdout.write(f"  skipped {names}: {reason}\n")
     return 0
+
+
+MAX_LISTED = 6
+"""A summary line lists at most this many items; longer lists are counted."""
+
+
+def _people_links(links: Sequence[tuple[int, int]]) -> str:
+    """A pair's person links for the summary table: listed when few, counted when
+    many (static cameras hold every instant's people in one view)."""
+    if len(links) <= MAX_LISTED:
+        return str(list(links))
+    return f"{len(links)} people linked"
+
+
+def _by_reason(reasons: Mapping[str, str]) -> list[tuple[str, str]]:
+    """(names, reason) with the names that share a reason on one line: a static
+    camera's instants, or a folder of images without people, are one line each."""
+    grouped: dict[str, list[str]] = {}
+    for name, reason in reasons.items():
+        grouped.setdefault(reason, []).append(name)
+    out = []
+    for reason, names in grouped.items():
+        if len(names) == 1:
+            out.append((names[0], reason))
+        elif len(names) <= MAX_LISTED:
+            out.append((f"{len(names)} images ({', '.join(names)})", reason))
+        else:
+            out.append((f"{len(names)} images ({names[0]} ... {names[-1]})", reason))
+    return out
 
 
 def _run_frames(cmd: Frames) -> int:
@@ -462,14 +491,14 @@ def _run_augment(cmd: Augment) -> int:
         k = p.num_by_kind
         lines.append(
             f"| {p.image_name1} | {p.image_name2} | "
-            f"{p.association_method} {p.association} | {p.num_vcs} | "
+            f"{p.association_method} {_people_links(p.association)} | {p.num_vcs} | "
             f"{p.num_inliers} | {p.inlier_ratio:.2f} | "
             f"{k.get('covisible', 0)} | {k.get('virtual', 0)} | "
             f"{k.get('keypoint', 0)} | {p.num_classic_inliers}/{p.num_classic} |"
         )
     sys.stdout.write("\n".join(lines) + "\n")
-    for name, reason in summary.skipped_images.items():
-        sys.stdout.write(f"skipped {name}: {reason}\n")
+    for names, reason in _by_reason(summary.skipped_images):
+        sys.stdout.write(f"skipped {names}: {reason}\n")
     for person, reason in summary.left_out_people.items():
         sys.stdout.write(f"left out {person}: {reason}\n")
     stages = ", ".join(f"{k} {v:.2f} s" for k, v in summary.timings_s.items())

@@ -152,3 +152,23 @@ def test_runtime_errors_exit_1(tmp_path):
     assert (
         main(["augment", str(tmp_path / "missing.db"), "--priors", str(tmp_path)]) == 1
     )
+
+
+def test_summaries_group_images_that_share_a_reason() -> None:
+    """A static camera's 19 other instants are one line, not 19; a reason of its
+    own keeps its image's name; a long list is counted with its ends."""
+    from colmap_vc.cli import MAX_LISTED, _by_reason, _people_links
+
+    why = "static camera cam01: its people are in cam01_f000.jpg's view"
+    reasons = {f"cam01_f{k:03d}.jpg": why for k in range(1, 20)}
+    reasons["odd.jpg"] = "no person found"
+    reasons |= {"a.jpg": "too small", "b.jpg": "too small"}
+    lines = dict((reason, names) for names, reason in _by_reason(reasons))
+    assert len(lines) == 3
+    assert lines[why] == "19 images (cam01_f001.jpg ... cam01_f019.jpg)"
+    assert lines["no person found"] == "odd.jpg"
+    assert lines["too small"] == "2 images (a.jpg, b.jpg)"
+    few = [(0, 1), (1, 0)]
+    assert _people_links(few) == "[(0, 1), (1, 0)]"
+    many = [(k, k) for k in range(MAX_LISTED + 1)]
+    assert _people_links(many) == f"{MAX_LISTED + 1} people linked"
