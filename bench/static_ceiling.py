@@ -64,7 +64,11 @@ GROUPS = {
     "knees": ("left_knee", "right_knee"),
     "ankles and feet": FEET_NAMES,
 }
-PEOPLE = {"man": "the man", "woman": "the avatar"}  # hand labels -> row names
+PEOPLE = {  # rows: a hand label's keypoints alone, or all but theirs
+    "the man's keypoints alone": ("man", True),
+    "the avatar's keypoints alone": ("woman", True),
+    "without the avatar": ("woman", False),
+}
 PATTERN = r"(cam\d+)_"  # bench/static_cameras.py's
 
 
@@ -251,16 +255,13 @@ def run(ds: str) -> dict:
     label_of = identity_labels(ds, db)
     person = np.array([label_of.get(int(i), "") for i in tracks.keys[:, 0]])
     person = person[tracks.track]
-    for label, row in PEOPLE.items():
+    for row, (label, alone) in PEOPLE.items():
         mine = person == label
-        if not mine.any():
-            continue
-        rows[f"from the calibration, {row}'s keypoints alone"] = pose_errors(
-            adjusted(rec, subset(tracks, mine), reps, gt, loss_px), gt
-        )
-        rows[f"from the calibration, without {row}"] = pose_errors(
-            adjusted(rec, subset(tracks, ~mine), reps, gt, loss_px), gt
-        )
+        if mine.any():
+            sub = subset(tracks, mine if alone else ~mine)
+            rows[f"from the calibration, {row}"] = pose_errors(
+                adjusted(rec, sub, reps, gt, loss_px), gt
+            )
     for label, r in rows.items():
         logger.info(
             "%s %s: AUC@15 %.1f, median %.2f deg",
