@@ -14,12 +14,17 @@ order is greedy, so its first N instants are the N it would choose, and each row
 them. Priors are computed once for the 80 frames (the estimator works per image).
 
     .venv/bin/python bench/static_instants.py [--dataset multi] [--instants 1 2 5 20]
+    .venv/bin/python bench/static_instants.py --cameras 2 --instants 20   # every pair
 
 `map` runs three times on each augmented database: with `--no-gravity`, as is, and
 with `--gba` (the generalized bundle adjustment, issue 12).
 
+``--cameras 2`` (or 3) maps every subset of that many cameras on its own, each at
+every number of instants: what two static cameras filming the same people give.
+
 Writes bench/out/static_instants.json and the "instants" section of docs/results.md
-(with ``--dataset multi``: static_instants_multi.json, "instants-multi").
+(with ``--dataset multi``: static_instants_multi.json, "instants-multi"; with
+``--cameras 2``: static_instants_c2.json, "instants-c2", and so on).
 """
 
 from __future__ import annotations
@@ -32,6 +37,7 @@ import subprocess
 import sys
 import time
 import zipfile
+from itertools import combinations
 from pathlib import Path
 
 import numpy as np
@@ -112,15 +118,17 @@ def run(
     work: Path,
     frames: Path,
     priors: Path,
+    cams: tuple[str, ...],
     map_only: bool = False,
 ) -> dict:
+    """``augment`` and ``map`` on the frames of cameras ``cams`` at the first ``num``
+    instants -> variant -> accuracy against the calibration of those cameras."""
     calib, gt_shared = load_calibration(data)
     cameras = {cam_of(n): c for n, c in calib.items()}
-    gt_cam = {cam_of(n): g for n, g in gt_shared.items()}
-    names = sorted(
-        f"{cam}_f{t:06d}.jpg" for cam in sorted(cameras) for t in instants[:num]
-    )
-    row = work / f"n{num:02d}"
+    gt_cam = {cam_of(n): g for n, g in gt_shared.items() if cam_of(n) in cams}
+    names = sorted(f"{cam}_f{t:06d}.jpg" for cam in cams for t in instants[:num])
+    every = len(cams) == len(cameras)
+    row = work / (f"n{num:02d}" if every else f"n{num:02d}_{'-'.join(cams)}")
     db = row / "database.db"
     args = ["--static-cameras", PATTERN, "--no-show-progress"]
     seconds = 0.0
@@ -152,6 +160,7 @@ def run(
         out[variant] = _evaluate(_largest_model(sparse) if code == 0 else None, gt_cam)
         out[variant] |= {
             "instants": instants[:num],
+            "cameras": list(cams),
             "images": len(names),
             "seconds_augment_map": seconds + time.perf_counter() - t0,
         }
@@ -159,7 +168,7 @@ def run(
 
 
 def _evaluate(rec, gt_cam: dict) -> dict:
-    """Pose accuracy of one model against the calibration (6 camera pairs)."""
+    """Pose accuracy of one model against the calibration (its cameras' pairs)."""
     pred = {}
     if rec is not None:
         pred = {
@@ -167,7 +176,7 @@ def _evaluate(rec, gt_cam: dict) -> dict:
             for im in rec.images.values()
             if im.has_pose
         }
-    metrics = evaluate_poses(pred, gt_cam)  # one pose per camera: 6 pairs
+    metrics = evaluate_poses(pred, gt_cam)  # one pose per camera
     errors = np.array([p.error_deg for p in metrics.pairs])
     aucs = pose_auc(errors, THRESHOLDS_DEG)
     return {
@@ -180,10 +189,33 @@ def _evaluate(rec, gt_cam: dict) -> dict:
     }
 
 
+def pooled(runs: list[dict]) -> dict:
+    """One table row from runs of camera subsets: their pairs pooled (one run: as
+    it is)."""
+    if len(runs) == 1:
+        return runs[0]
+    errors = np.array([e for r in runs for e in r["pairs"]])
+    aucs = pose_auc(errors, THRESHOLDS_DEG)
+    return {
+        "auc": {f"{t:g}": 100 * a for t, a in zip(THRESHOLDS_DEG, aucs, strict=True)},
+        "median_error_deg": float(np.median(errors)),
+        "pairs": errors.tolist(),
+        "registered": sum(r["registered"] for r in runs),
+        "images": sum(r["images"] for r in runs),
+        "distance_ratio": float(np.nanmedian([r["distance_ratio"] for r in runs])),
+    }
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--dataset", choices=sorted(DEMOS), default="single")
     parser.add_argument("--instants", nargs="+", type=int, default=[1, 2, 5, 10, 20])
+    parser.add_argument(
+        "--cameras",
+        type=int,
+        default=4,
+        help="cameras per run: every subset of this many, each mapped on its own",
+    )
     parser.add_argument(
         "--map-only",
         action="store_true",
@@ -224,21 +256,29 @@ def main() -> None:
             ]
         )
         assert code == 0, f"priors failed ({code})"
+    everyone = tuple(sorted({cam_of(n) for n in load_calibration(data)[0]}))
+    subsets = list(combinations(everyone, args.cameras))
     results = {
-        n: run(data, n, instants, work, frames, priors, args.map_only)
+        n: {
+            "-".join(cams): run(
+                data, n, instants, work, frames, priors, cams, args.map_only
+            )
+            for cams in subsets
+        }
         for n in args.instants
     }
-    write_json(
-        f"static_instants{suffix}.json", {"machine": machine(), "results": results}
-    )
+    tag = suffix + ("" if args.cameras == len(everyone) else f"_c{args.cameras}")
+    write_json(f"static_instants{tag}.json", {"machine": machine(), "results": results})
     lines = [
         "| instants | `map` | images | registered | AUC@15 | AUC@30 | AUC@45 "
         "| median pair error (deg) | pair errors (deg) "
         "| camera distances / calibration |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for n, by_variant in results.items():
-        for variant, r in by_variant.items():
+    for n, by_subset in results.items():
+        for variant in VARIANTS:
+            runs = [r[variant] for r in by_subset.values()]
+            r = pooled(runs)
             a = r["auc"]
             lines.append(
                 f"| {n} | `{variant}` | {r['images']} "
@@ -253,6 +293,7 @@ def main() -> None:
         f"Measured at commit {machine()['commit']} by `.venv/bin/python "
         "bench/static_instants.py"
         f"{'' if args.dataset == 'single' else ' --dataset ' + args.dataset}"
+        f"{'' if args.cameras == len(everyone) else f' --cameras {args.cameras}'}"
         f" --instants {' '.join(map(str, args.instants))}"
         f"{' --map-only' if args.map_only else ''}`: "
         f"the four videos of Pose2Sim's {demo} (pose2sim 0.10.49 on PyPI, "
@@ -260,19 +301,28 @@ def main() -> None:
         "`colmap-vc frames` (20 instants by farthest-point sampling; the first N "
         "for N instants), `priors`, `augment --static-cameras "
         f"'{PATTERN}'`, then `map` with the same option on it, with `--no-gravity`, "
-        "as is and with `--gba`; the six camera pairs against the calibration."
+        "as is and with `--gba`; "
+        + (
+            "the six camera pairs against the calibration."
+            if args.cameras == len(everyone)
+            else f"every {args.cameras} of the {len(everyone)} cameras mapped on "
+            f"their own ({len(subsets)} runs per row), their pairs against the "
+            "calibration, pooled; camera distances: the median over the runs."
+        )
         + (
             " `--map-only`: `map` on the augmented databases of the previous run."
             if args.map_only
             else ""
         ),
     ]
-    title = "## Static cameras: more instants from the videos" + (
-        "" if args.dataset == "single" else ", two people and a bystander"
+    title = (
+        "## Static cameras: more instants from the videos"
+        + ("" if args.dataset == "single" else ", two people and a bystander")
+        + ("" if args.cameras == len(everyone) else f", {args.cameras} cameras")
     )
     replace_section(
         DOCS / "results.md",
-        "instants" + suffix.replace("_", "-"),
+        "instants" + tag.replace("_", "-"),
         title + "\n\n" + "\n".join(lines),
     )
     print("\n".join(lines))
