@@ -526,12 +526,17 @@ def run(
     with_people = sum(
         1 for n in views.image_names if n in priors.images and priors.images[n].persons
     )
+    seen = (  # a static camera's images share one view of its people
+        f"{summary.num_images_with_priors}/{summary.num_images} images with priors"
+        if static is None
+        else f"{summary.num_images_with_priors} static-camera views with priors "
+        f"for {summary.num_images} images"
+    )
     logger.info(
-        "augment%s: %d/%d images with priors (%d with people), %d pairs with VCs, "
+        "augment%s: %s (%d with people), %d pairs with VCs, "
         "%d verified, %d VCs (%d inliers)",
         " (dry run)" if options.dry_run else "",
-        summary.num_images_with_priors,
-        summary.num_images,
+        seen,
         with_people,
         len(summary.pairs),
         summary.num_verified_pairs,
