@@ -13,7 +13,8 @@ The instants are chosen once, 20 of them, by `frames`' farthest-point sampling; 
 order is greedy, so its first N instants are the N it would choose, and each row uses
 them. Priors are computed once for the 80 frames (the estimator works per image).
 
-    .venv/bin/python bench/static_instants.py [--dataset multi] [--instants 1 2 5 20]
+    .venv/bin/python bench/static_instants.py [--instants 1 2 5 10 20]
+    .venv/bin/python bench/static_instants.py --dataset multi   # the second demo
     .venv/bin/python bench/static_instants.py --cameras 2 --instants 20   # every pair
 
 `map` runs three times on each augmented database: with `--no-gravity`, as is, and
