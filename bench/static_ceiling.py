@@ -29,6 +29,7 @@ import argparse
 import json
 import logging
 from collections import Counter
+from pathlib import Path
 
 import numpy as np
 import pycolmap
@@ -182,7 +183,7 @@ def adjusted(
     return out
 
 
-def identity_labels(ds: str, db) -> dict[int, str]:
+def identity_labels(ds: str, db: Path) -> dict[int, str]:
     """Each person identity of ``db`` (static cameras: a camera's people of every
     instant are persons of its representative image) -> its hand label, by a
     majority of its views (tests/data/pose2sim_people.json)."""

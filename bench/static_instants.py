@@ -168,6 +168,15 @@ def run(
     return out
 
 
+def _scores(errors: np.ndarray) -> dict:
+    """AUC at each threshold (percent) and the median of pair errors (deg)."""
+    aucs = pose_auc(errors, THRESHOLDS_DEG)
+    return {
+        "auc": {f"{t:g}": 100 * a for t, a in zip(THRESHOLDS_DEG, aucs, strict=True)},
+        "median_error_deg": float(np.median(errors)),
+    }
+
+
 def _evaluate(rec, gt_cam: dict) -> dict:
     """Pose accuracy of one model against the calibration (its cameras' pairs)."""
     pred = {}
@@ -179,11 +188,9 @@ def _evaluate(rec, gt_cam: dict) -> dict:
         }
     metrics = evaluate_poses(pred, gt_cam)  # one pose per camera
     errors = np.array([p.error_deg for p in metrics.pairs])
-    aucs = pose_auc(errors, THRESHOLDS_DEG)
     return {
         "registered": 0 if rec is None else int(rec.num_reg_images()),
-        "auc": {f"{t:g}": 100 * a for t, a in zip(THRESHOLDS_DEG, aucs, strict=True)},
-        "median_error_deg": float(np.median(errors)),
+        **_scores(errors),
         "rotation_deg": [round(p.rotation_deg, 2) for p in metrics.pairs],
         "pairs": [round(float(e), 2) for e in errors],
         "distance_ratio": camera_distance_ratio(pred, gt_cam),
@@ -196,10 +203,8 @@ def pooled(runs: list[dict]) -> dict:
     if len(runs) == 1:
         return runs[0]
     errors = np.array([e for r in runs for e in r["pairs"]])
-    aucs = pose_auc(errors, THRESHOLDS_DEG)
     return {
-        "auc": {f"{t:g}": 100 * a for t, a in zip(THRESHOLDS_DEG, aucs, strict=True)},
-        "median_error_deg": float(np.median(errors)),
+        **_scores(errors),
         "pairs": errors.tolist(),
         "registered": sum(r["registered"] for r in runs),
         "images": sum(r["images"] for r in runs),
