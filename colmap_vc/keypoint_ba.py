@@ -26,14 +26,16 @@ from __future__ import annotations
 import dataclasses
 import logging
 import time
+from collections.abc import Mapping
 from dataclasses import dataclass
 
 import numpy as np
 import pycolmap
 
 from .camera_check import check_cameras_inplace
-from .gba.ceres import PeopleNoise, bundle_adjust_inplace
+from .gba.ceres import PeopleNoise, bundle_adjust_inplace, log_rounded
 from .gba.correlated import correlated_noise
+from .gba.repeats import repeat_noise
 from .keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
@@ -50,6 +52,9 @@ from .people_check import check_few_view_people, unchecked_people
 from .vc_records import VcRecords
 
 logger = logging.getLogger(__name__)
+
+RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
+"""Median of the length of a 2D error over its standard deviation per coordinate."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -99,6 +104,11 @@ class KeypointBaOptions:
     """With ``surface_tracks``: scale of each people observation's Cauchy loss, in
     its cluster's spread sigma (not the inflated noise: one wrong sample of a
     cluster is an outlier at a few sigma whatever the cluster's shared error)."""
+    weigh_repeats: bool = True
+    """Static cameras: weigh each keypoint observation by how much its error
+    repeats another instant's, the same landmark of someone who stood still
+    there (:mod:`colmap_vc.gba.repeats`): such a person's instants count about
+    once, not once per instant. Off: every instant counts as independent."""
     min_track_length: int = 2
     """Keypoint tracks seen by fewer registered images are left out."""
     check_seed: int = 0
@@ -153,6 +163,17 @@ class KeypointBaSummary:
     tracks: KeypointTracks | None = None
     """The keypoint tracks as the model holds them after the camera check (people
     exchanged or left out there); None without keypoint VCs."""
+    repeats: RepeatSummary | None = None
+    """How the keypoints of people who stood still were weighed (static cameras)."""
+
+
+@dataclass(frozen=True, kw_only=True, slots=True)
+class RepeatSummary:
+    """Keypoints repeated over static cameras' instants (:mod:`.gba.repeats`)."""
+
+    sigma_px: float  # the keypoints' spread the correlation is measured against
+    num_observations: int  # keypoint observations of the instants' people
+    effective: float  # what they count as: the sum of 1 / m
 
 
 def surface_budget_noise(
@@ -202,13 +223,16 @@ def keypoint_bundle_adjustment(
     options: KeypointBaOptions | None = None,
     *,
     mirror: dict[int, int] | None = None,
+    instant_of: Mapping[int, str] | None = None,
 ) -> tuple[pycolmap.Reconstruction, KeypointBaSummary]:
     """A copy of ``rec`` with keypoint tracks by identity, bundle-adjusted (module doc).
 
     ``rec`` is not modified. Without keypoint VCs in ``records`` (what `augment`
     wrote, :func:`~colmap_vc.vc_records.read_vc_records`) it returns a plain copy.
     ``mirror`` (template track id -> its left/right counterpart's) lets the camera
-    check try an image's people with left and right exchanged.
+    check try an image's people with left and right exchanged. ``instant_of``
+    (static cameras: identity -> instant) lets ``weigh_repeats`` find the
+    people who stood still.
     """
     options = with_loss_scale(options or KeypointBaOptions(), rec)
     loss = options.loss_scale_px
@@ -257,6 +281,12 @@ def keypoint_bundle_adjustment(
     )
     good, counts = add_keypoint_points(out, tracks, options.min_track_length)
     bundle_adjust_inplace(out, loss, weights)
+    repeats, repeat_summary = None, None
+    if instant_of and options.weigh_repeats:
+        repeats, repeat_summary = _repeats(out, tracks, instant_of, options)
+        if repeats is not None:
+            weights = repeats if weights is None else weights.or_else(repeats)
+            bundle_adjust_inplace(out, loss, weights)
     few = unchecked_people(tracks) if len(registered) >= 3 else []
     if few and options.check_cameras:
         tracks, missed = check_few_view_people(
@@ -306,6 +336,8 @@ def keypoint_bundle_adjustment(
         noise, num_surface = add_weighted_surface(
             records, out, tracks, options, exchanged
         )
+        if repeats is not None:
+            noise = noise.or_else(repeats)
         bundle_adjust_inplace(out, loss, noise)
     summary = KeypointBaSummary(
         num_tracks=int(good.sum()),
@@ -318,6 +350,7 @@ def keypoint_bundle_adjustment(
         left_out=left_out,
         mirrored=tuple(mirrored),
         tracks=tracks,
+        repeats=repeat_summary,
     )
     logger.info(
         "keypoint BA: %d keypoint tracks (%d observations), %d surface-VC "
@@ -334,6 +367,36 @@ def keypoint_bundle_adjustment(
         summary.elapsed_s,
     )
     return out, summary
+
+
+def _repeats(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    instant_of: Mapping[int, str],
+    options: KeypointBaOptions,
+) -> tuple[PeopleNoise | None, RepeatSummary | None]:
+    """The repeated keypoints' noise (None: nothing repeats) and its summary."""
+    assert options.loss_scale_px is not None and tracks.keys is not None
+    ok = np.isin(tracks.keys[tracks.track, 0], list(instant_of))
+    if not ok.any():
+        return None, None
+    sigma = options.loss_scale_px / RAYLEIGH_MEDIAN
+    noise, design = repeat_noise(rec, tracks, instant_of, sigma, options.loss_scale_px)
+    summary = RepeatSummary(
+        sigma_px=sigma,
+        num_observations=int(ok.sum()),
+        effective=float(np.sum(1.0 / design[ok])),
+    )
+    logger.info(
+        "keypoint BA: the static cameras' %d keypoint observations count as %.0f "
+        "(errors repeated by people who stood still; keypoint error %.1f px)",
+        summary.num_observations,
+        summary.effective,
+        sigma,
+    )
+    if not any(np.isfinite(v).any() for v in noise.sigma_px.values()):
+        return None, summary
+    return noise, summary
 
 
 def add_weighted_surface(
@@ -396,7 +459,7 @@ def surface_noise(
         return PeopleNoise(sigma_px=sigma, robust_px=robust)
     unit = max(float(np.median(kp.sigma_px)), options.min_sigma_px)
     noise = correlated_noise(rec, surface, triangulate_tracks(rec, surface)[0])
-    per_obs = _log_rounded(noise.observation_sigma_px(options.min_sigma_px) / unit)
+    per_obs = log_rounded(noise.observation_sigma_px(options.min_sigma_px) / unit)
     spread = noise.observation_spread_px(options.min_sigma_px)
     ok = np.isfinite(per_obs)
     for image_id in np.unique(surface.image_id[ok]):  # loop over images
@@ -415,11 +478,3 @@ def surface_noise(
         float(np.nanmedian(noise.design)) if ok.any() else float("nan"),
     )
     return PeopleNoise(sigma_px=sigma, robust_px=robust)
-
-
-def _log_rounded(sigma: np.ndarray, step: float = 0.02) -> np.ndarray:
-    """``sigma`` rounded to 2% steps: one whitened camera block per (camera, value)
-    (:func:`colmap_vc.gba.ceres.bundle_adjust_inplace`), a few dozen, not one per
-    observation."""
-    with np.errstate(divide="ignore", invalid="ignore"):
-        return np.exp(np.round(np.log(sigma) / step) * step)

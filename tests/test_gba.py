@@ -13,6 +13,7 @@ from colmap_vc.evaluation import evaluate_reconstruction
 from colmap_vc.gba.ceres import PeopleNoise, bundle_adjust_inplace, weighted_points
 from colmap_vc.gba.correlated import correlated_noise
 from colmap_vc.gba.noise import cluster_noise, reprojection_residuals
+from colmap_vc.gba.repeats import repeat_design
 from colmap_vc.keypoint_tracks import KeypointTracks, triangulate_tracks
 
 
@@ -351,3 +352,81 @@ def test_the_adjustment_stops_once_the_cost_no_longer_changes(monkeypatch):
         a = early.image(image_id).cam_from_world()
         b = full.image(image_id).cam_from_world()
         assert np.degrees((a.rotation * b.rotation.inverse()).angle()) < 1e-3
+
+
+def _landmarks(
+    xy: np.ndarray, identity: np.ndarray, landmark: np.ndarray
+) -> KeypointTracks:
+    """One image's keypoints: row k is ``landmark[k]`` of ``identity[k]``."""
+    keys, track = np.unique(
+        np.stack([identity, landmark], axis=1), axis=0, return_inverse=True
+    )
+    order = np.argsort(track.ravel(), kind="stable")
+    return KeypointTracks(
+        track=track.ravel()[order],
+        image_id=np.ones(len(xy), np.int64),
+        point2D_idx=np.arange(len(xy))[order],
+        xy_img=xy[order],
+        keys=keys,
+    )
+
+
+def test_a_person_who_stood_still_counts_once_and_one_who_moved_fully():
+    """Identity 0-2: one still person at three instants (the same pixels);
+    identity 3-4: a person who moved 100 px between two instants; identity 5: a
+    second person at the first instant on the first's pixels; identity 6: not a
+    static camera's."""
+    rng = np.random.default_rng(0)
+    base = rng.uniform(0, 500, (4, 2))
+    xy = np.concatenate([base, base, base, base + 300, base + 400, base, base])
+    identity = np.repeat(np.arange(7), 4)
+    instant_of = {0: "t1", 1: "t2", 2: "t3", 3: "t1", 4: "t2", 5: "t1"}
+    landmark = np.tile(np.arange(4), 7)
+    tracks = _landmarks(xy, identity, landmark)
+    m = repeat_design(tracks, instant_of, sigma_px=10.0)
+    who = tracks.keys[tracks.track, 0]
+    # The still person's 3 instants: m = 3 (and the same-instant person 5 adds
+    # to instants 1 and 2 only: person 0's instant is its own).
+    assert np.allclose(m[who == 0], 3.0)
+    assert np.allclose(m[np.isin(who, [1, 2])], 4.0)
+    assert np.allclose(m[who == 5], 3.0)
+    assert np.allclose(m[np.isin(who, [3, 4, 6])], 1.0)
+    # Two instants at distance d: 1 + (1 - d^2 / (4 sigma^2)).
+    two = _landmarks(
+        np.array([[0.0, 0.0], [0, 0], [0, 0], [0, 0], [6, 8], [0, 0], [0, 0], [0, 0]]),
+        np.repeat([0, 1], 4),
+        np.tile(np.arange(4), 2),
+    )
+    m2 = repeat_design(two, {0: "a", 1: "b"}, sigma_px=10.0)
+    assert np.isclose(m2[two.point2D_idx == 0][0], 1.0 + 1.0 - 100.0 / 400.0)
+    # The same keypoints in another order: the same design effect each.
+    perm = rng.permutation(len(xy))
+    again = _landmarks(xy[perm], identity[perm], landmark[perm])
+    m_again = repeat_design(again, instant_of, sigma_px=10.0)
+    by_row = dict(zip(perm[again.point2D_idx].tolist(), m_again.tolist(), strict=True))
+    assert np.allclose([by_row[k] for k in tracks.point2D_idx.tolist()], m)
+
+
+def test_the_correlation_from_distance_is_the_bias_share_of_the_noise():
+    """Errors e_t = b + u_t of a still person's landmark: two instants' errors
+    correlate by var(b) / sigma^2, what 1 - d^2 / (4 sigma^2) estimates on
+    average from their pixel distance d (module doc of gba.repeats)."""
+    rng = np.random.default_rng(1)
+    n, sd_b, sd_u = 4000, 9.0, 3.0
+    sigma = np.hypot(sd_b, sd_u)
+    b = rng.normal(0, sd_b, (n, 2))
+    xy = np.concatenate(
+        [b + rng.normal(0, sd_u, (n, 2)), b + rng.normal(0, sd_u, (n, 2))]
+    )
+    # Landmark per row: n landmarks of two identities (two instants).
+    keys = np.stack([np.repeat([0, 1], n), np.tile(np.arange(n), 2)], axis=1)
+    order = np.argsort(np.arange(2 * n), kind="stable")
+    tracks = KeypointTracks(
+        track=order,
+        image_id=np.ones(2 * n, np.int64),
+        point2D_idx=order,
+        xy_img=xy,
+        keys=keys,
+    )
+    m = repeat_design(tracks, {0: "a", 1: "b"}, sigma_px=float(sigma))
+    assert abs(np.mean(m - 1.0) - sd_b**2 / sigma**2) < 0.01

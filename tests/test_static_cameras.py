@@ -12,6 +12,10 @@ from conftest import extract_database
 
 from colmap_vc import cli, database
 from colmap_vc.evaluation import camera_distance_ratio
+from colmap_vc.gba.repeats import repeat_design
+from colmap_vc.keypoint_tracks import keypoint_tracks
+from colmap_vc.mapping.inputs import read_inputs
+from colmap_vc.mapping.options import MappingOptions
 from colmap_vc.mapping.outputs import static_members_left_out
 from colmap_vc.metric_scale import read_metric_scale
 from colmap_vc.priors import read_priors, write_priors
@@ -295,3 +299,22 @@ def test_same_pixels_need_many_inliers_and_no_shift() -> None:
     ):
         got = same_view_pairs({(1, 2): row(H, inliers)}, sizes, 30, 2.0)
         assert bool(got) is found, (H, inliers)
+
+
+def test_a_scene_that_did_not_move_repeats_every_keypoint_error(
+    dome_scene: Path, tmp_path: Path
+) -> None:
+    """Two instants of the same pictures (nobody moved): `map` knows the instant
+    of every static-camera person, and each keypoint repeats the other instant's
+    error exactly (design effect 2: the two instants count as one)."""
+    names = sorted(database.read_views(dome_scene / "database.db").image_names)
+    db, _, _ = _static_copies(dome_scene, tmp_path, names[:4])
+    inputs = read_inputs(db, MappingOptions(), None)
+    assert inputs.instant_of is not None
+    assert sorted(set(inputs.instant_of.values())) == [".jpg", "_t2.jpg"]
+    ids = inputs.records.views.image_ids
+    tracks = keypoint_tracks(inputs.records, np.asarray(ids, dtype=np.int64))
+    assert tracks.keys is not None and tracks.num_tracks > 0
+    assert set(np.unique(tracks.keys[:, 0]).tolist()) <= set(inputs.instant_of)
+    m = repeat_design(tracks, inputs.instant_of, sigma_px=5.0)
+    assert np.allclose(m, 2.0)

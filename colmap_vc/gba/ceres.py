@@ -42,6 +42,31 @@ class PeopleNoise:
     sigma_px: Mapping[int, FloatArray]  # (num points2D,) noise px; NaN: classic
     robust_px: Mapping[int, FloatArray]  # (num points2D,) Cauchy scale px
 
+    def or_else(self, other: PeopleNoise) -> PeopleNoise:
+        """This noise, and ``other``'s where this has none."""
+        sigma = {i: v.copy() for i, v in self.sigma_px.items()}
+        robust = {i: v.copy() for i, v in self.robust_px.items()}
+        for i, v in other.sigma_px.items():  # loop over images
+            if i not in sigma:
+                sigma[i], robust[i] = v.copy(), other.robust_px[i].copy()
+                continue
+            fill = np.isnan(sigma[i]) & np.isfinite(v)
+            sigma[i][fill] = v[fill]
+            robust[i][fill] = other.robust_px[i][fill]
+        return PeopleNoise(sigma_px=sigma, robust_px=robust)
+
+    def without(self, image_id: np.ndarray, point2D_idx: np.ndarray) -> PeopleNoise:
+        """This noise with none for the given observations (rows of the two)."""
+        sigma = {i: v.copy() for i, v in self.sigma_px.items()}
+        robust = {i: v.copy() for i, v in self.robust_px.items()}
+        for i in np.unique(image_id).tolist():  # loop over images
+            if i in sigma:
+                rows = point2D_idx[image_id == i]
+                rows = rows[rows < len(sigma[i])]
+                sigma[i][rows] = np.nan
+                robust[i][rows] = np.nan
+        return PeopleNoise(sigma_px=sigma, robust_px=robust)
+
 
 # Ceres stops once an iteration lowers the cost by less than this fraction of it.
 # COLMAP sets none (0.0), so its adjustments run until the gradient tolerance or
@@ -68,6 +93,13 @@ def ba_options(loss_scale_px: float) -> pycolmap.BundleAdjustmentOptions:
     options.ceres.loss_function_scale = loss_scale_px
     options.ceres.solver_options.function_tolerance = FUNCTION_TOLERANCE
     return options
+
+
+def log_rounded(sigma: np.ndarray, step: float = 0.02) -> np.ndarray:
+    """``sigma`` rounded to 2% steps: one whitened camera block per (camera, value)
+    (:func:`bundle_adjust_inplace`), a few dozen, not one per observation."""
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.exp(np.round(np.log(sigma) / step) * step)
 
 
 def bundle_adjust_inplace(

@@ -31,6 +31,9 @@ class MapInputs:
     priors: ScenePriors | None  # static cameras: one merged view per camera
     image_priors: ScenePriors | None  # each image's own people
     mirror: dict[int, int] | None  # template track id -> left/right counterpart's
+    instant_of: dict[int, str] | None = None
+    """Static cameras: the instant of each person identity (people of the static
+    cameras' views; an identity spans one instant)."""
 
     @property
     def views(self) -> database.DatabaseViews:
@@ -76,8 +79,11 @@ def read_inputs(
     own = read_image_priors(records.run_info, priors_path, names)
     image_priors = None if own is None else with_associated_ids(own, records)
     priors = image_priors
+    instant_of = None
     if own is not None and static is not None:  # the views augment wrote
-        priors = with_associated_ids(merge_priors(own, static)[0], records)
+        views, groups = merge_priors(own, static)
+        priors = with_associated_ids(views, records)
+        instant_of = identity_instants(views, groups, records)
     return MapInputs(
         database_path=database_path,
         records=records,
@@ -87,7 +93,31 @@ def read_inputs(
         priors=priors,
         image_priors=image_priors,
         mirror=keypoint_mirror(records.num_samples, priors),
+        instant_of=instant_of,
     )
+
+
+def identity_instants(
+    views: ScenePriors, groups: Mapping[tuple[str, int], str], records: VcRecords
+) -> dict[int, str]:
+    """Identity -> instant of the static cameras' people: ``views`` are the
+    merged priors `augment` wrote VCs for, ``groups`` (view name, person index)
+    -> instant (:func:`~colmap_vc.static_cameras.merge_priors`). A person's
+    database id is its prior's id, else its index in the view (what `augment`
+    writes)."""
+    id_of = dict(
+        zip(records.views.image_names, records.views.image_ids.tolist(), strict=True)
+    )
+    out: dict[int, str] = {}
+    for (name, k), instant in groups.items():  # loop over the merged people
+        if not instant or name not in id_of or name not in views.images:
+            continue
+        person = views.images[name].persons[k]
+        key = k if person.person_id is None else person.person_id
+        identity = records.identity.get((id_of[name], key))
+        if identity is not None:
+            out[identity] = instant
+    return out
 
 
 def static_cameras(

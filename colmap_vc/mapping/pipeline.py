@@ -204,7 +204,11 @@ def _map_copy(
     tracks = None
     if best is not None and best_key is not None and options.keypoint_ba:
         best, kba = keypoint_bundle_adjustment(
-            inputs.records, best, options.keypoint_ba_options, mirror=inputs.mirror
+            inputs.records,
+            best,
+            options.keypoint_ba_options,
+            mirror=inputs.mirror,
+            instant_of=inputs.instant_of,
         )
         models[best_key] = best
         left_out.update(kba.left_out or {})
@@ -228,7 +232,11 @@ def _map_copy(
             # Two images left: their keypoint tracks alone barely hold the pose,
             # and the keypoint BA weighs their surface for two images.
             best, kba = keypoint_bundle_adjustment(
-                inputs.records, best, options.keypoint_ba_options, mirror=inputs.mirror
+                inputs.records,
+                best,
+                options.keypoint_ba_options,
+                mirror=inputs.mirror,
+                instant_of=inputs.instant_of,
             )
             models[best_key] = best
             people, tracks = kba.people, kba.tracks

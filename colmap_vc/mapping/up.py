@@ -144,7 +144,10 @@ def refine_with_gravity_inplace(
         registered_ids = np.array(sorted(registered.values()), dtype=np.int64)
         tracks = keypoint_tracks(inputs.records, registered_ids)
     noise = keypoint_noise_px(rec, tracks, min_sigma_px)
-    absorbed = absorbed_noise_px(rec, registered, measured, loss_scale_px, people)
+    surface = (  # the repeated keypoints' weights stay: they are keypoints
+        None if people is None else people.without(tracks.image_id, tracks.point2D_idx)
+    )
+    absorbed = absorbed_noise_px(rec, registered, measured, loss_scale_px, surface)
     if noise is not None and absorbed is not None and absorbed > noise:
         logger.info(
             "gravity: the cameras' tilts disagree with their ups as if the keypoints "
@@ -277,7 +280,8 @@ def absorbed_noise_px(
 ) -> float | None:
     """The keypoint noise the cameras' tilts show, pixels: what the residuals
     cannot (None with fewer than three measured ups, or without a covariance;
-    ``people``: the weighted surface observations, left out of the covariance).
+    ``people``: the weighted surface observations, left out of the covariance;
+    keypoints count at one pixel each, repeated or not).
 
     The residuals see the keypoints' spread and the error a person's keypoints
     share in an image (:func:`keypoint_noise_px`), but not an error the poses
