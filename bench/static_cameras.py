@@ -7,8 +7,9 @@ instant, pairs pooled over the instants, as bench/realdata.py does for one insta
 
     .venv/bin/python bench/static_cameras.py [--datasets single multi]
 
-`map` runs twice on the same augmented database: with `--no-gravity` and as is
-(each camera's up from the scene's vertical lines, colmap_vc/gravity.py).
+`map` runs three times on the same augmented database: with `--no-gravity`, with
+`--no-weigh-repeats` (every instant's keypoints independent) and as is (each
+camera's up from the scene's vertical lines, colmap_vc/gravity.py).
 Then the whole path runs again with the images written into the database in
 reverse order, and the largest change of a camera's rotation is reported (same
 input, same output).
@@ -42,7 +43,11 @@ from colmap_vc.evaluation import camera_distance_ratio, evaluate_poses, poses_by
 
 logger = logging.getLogger("bench.static_cameras")
 PATTERN = r"(cam\d+)_"
-VARIANTS = {"map --no-gravity": ["--no-gravity"], "map": []}
+VARIANTS = {
+    "map --no-gravity": ["--no-gravity"],
+    "map --no-weigh-repeats": ["--no-weigh-repeats"],
+    "map": [],
+}
 
 
 def run(
@@ -186,7 +191,8 @@ def main() -> None:
         + "`: one database "
         "of the 20 images, `colmap-vc priors`, `augment --static-cameras "
         f"'{PATTERN}'`, then `map --static-cameras '{PATTERN}'` on it with "
-        "`--no-gravity` and as is (each camera's up from the scene's vertical "
+        "`--no-gravity`, `--no-weigh-repeats` (every instant's keypoints "
+        "independent) and as is (each camera's up from the scene's vertical "
         "lines); evaluated "
         "per instant (4 images, 6 pairs), pairs pooled over the 5 instants. "
         "Camera distances / calibration: the median over camera pairs of the "

@@ -17,8 +17,10 @@ them. Priors are computed once for the 80 frames (the estimator works per image)
     .venv/bin/python bench/static_instants.py --dataset multi   # the second demo
     .venv/bin/python bench/static_instants.py --cameras 2 --instants 20   # every pair
 
-`map` runs three times on each augmented database: with `--no-gravity`, as is, and
-with `--gba` (the generalized bundle adjustment, issue 12).
+`map` runs four times on each augmented database: with `--no-gravity`, with
+`--no-weigh-repeats` (every instant's keypoints as independent, the default before
+the still people's weights), as is, and with `--gba` (the generalized bundle
+adjustment, issue 12).
 
 ``--cameras 2`` (or 3) maps every subset of that many cameras on its own, each at
 every number of instants: what two static cameras filming the same people give.
@@ -67,7 +69,12 @@ logger = logging.getLogger("bench.static_instants")
 WHEEL = "pose2sim-0.10.49-py3-none-any.whl"
 DEMOS = {"single": "Demo_SinglePerson", "multi": "Demo_MultiPerson"}
 PATTERN = r"(cam\d+)_f"
-VARIANTS = {"map --no-gravity": ["--no-gravity"], "map": [], "map --gba": ["--gba"]}
+VARIANTS = {
+    "map --no-gravity": ["--no-gravity"],
+    "map --no-weigh-repeats": ["--no-weigh-repeats"],
+    "map": [],
+    "map --gba": ["--gba"],
+}
 CACHE = OUT / "cache"
 
 
@@ -307,7 +314,8 @@ def main() -> None:
         "`colmap-vc frames` (20 instants by farthest-point sampling; the first N "
         "for N instants), `priors`, `augment --static-cameras "
         f"'{PATTERN}'`, then `map` with the same option on it, with `--no-gravity`, "
-        "as is and with `--gba`; "
+        "with `--no-weigh-repeats` (every instant's keypoints independent), as is "
+        "and with `--gba`; "
         + (
             "the six camera pairs against the calibration."
             if args.cameras == len(everyone)
