@@ -7,7 +7,9 @@ tracks by identity (COLMAP's BA, the keypoint BA's Cauchy loss, no surface VCs, 
 camera check) from two starts: that model and the calibration itself. When both
 converge to the same poses, the error left is where the keypoints' least-squares
 optimum lies: no mapper, initialisation or solver change can remove it; only other
-evidence can. Then the same from the calibration with one camera left out, with
+evidence or another weighting can. The same two with the keypoints weighted by their
+repeated errors, as `map` weighs them (colmap_vc/gba/repeats.py: a person who
+stood still counts about once). Then the same from the calibration with one camera left out, with
 groups of landmarks left out (which kinds of landmark pull the optimum away), and
 with one labelled person's keypoints alone, left out, or at one of the instants
 only (tests/data/pose2sim_people.json: the real man, on pose2sim_multi the
@@ -42,7 +44,8 @@ from colmap_vc.estimators.blazepose import FEET_NAMES
 from colmap_vc.estimators.body import anny_keypoint_names
 from colmap_vc.evaluation import evaluate_poses
 from colmap_vc.gba.ceres import bundle_adjust_inplace
-from colmap_vc.keypoint_ba import KeypointBaOptions, with_loss_scale
+from colmap_vc.gba.repeats import repeat_noise
+from colmap_vc.keypoint_ba import RAYLEIGH_MEDIAN, KeypointBaOptions, with_loss_scale
 from colmap_vc.keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
@@ -50,6 +53,8 @@ from colmap_vc.keypoint_tracks import (
     subset,
     triangulate_tracks,
 )
+from colmap_vc.mapping.inputs import read_inputs
+from colmap_vc.mapping.options import MappingOptions
 from colmap_vc.priors import read_priors
 from colmap_vc.static_cameras import parse_static_cameras
 from colmap_vc.synthetic import bodies
@@ -176,10 +181,17 @@ def adjusted(
     keep: set[int],
     poses: dict[str, np.ndarray] | None,
     loss_px: float,
+    instant_of: dict[int, str] | None = None,
 ) -> pycolmap.Reconstruction:
+    """The keypoint tracks' bundle adjustment from ``poses`` (None: ``rec``'s);
+    with ``instant_of``, weighted by their repeated errors as `map` weighs them."""
     out = posed_copy(rec, keep, poses)
     add_keypoint_points(out, tracks, 2)
-    bundle_adjust_inplace(out, loss_px)
+    noise = None
+    if instant_of:
+        sigma = loss_px / RAYLEIGH_MEDIAN
+        noise, _ = repeat_noise(out, tracks, instant_of, sigma, loss_px)
+    bundle_adjust_inplace(out, loss_px, noise)
     return out
 
 
@@ -231,6 +243,15 @@ def run(ds: str) -> dict:
     rows["keypoint tracks, from that model"] = pose_errors(from_model, gt)
     from_gt = adjusted(rec, tracks, reps, gt, loss_px)
     rows[FROM_GT] = pose_errors(from_gt, gt)
+    instant_of = read_inputs(
+        db, MappingOptions(static_cameras=PATTERN), None
+    ).instant_of
+    rows["keypoint tracks weighted by their repeats, from that model"] = pose_errors(
+        adjusted(rec, tracks, reps, None, loss_px, instant_of), gt
+    )
+    rows["keypoint tracks weighted by their repeats, from the calibration"] = (
+        pose_errors(adjusted(rec, tracks, reps, gt, loss_px, instant_of), gt)
+    )
     at_gt = posed_copy(rec, reps, gt)
     reprojection = {
         "at the optimum": reprojection_px(from_gt, tracks),
