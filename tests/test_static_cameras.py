@@ -120,6 +120,7 @@ def _static_copies(
     background: bool = False,
     drop: tuple[str, ...] = (),
     instants: tuple[str, ...] = ("_t2",),
+    anonymous: bool = True,
 ) -> tuple[Path, Path, list[str]]:
     """The dome images ``names`` as instants of static cameras: each picture
     again under each name suffix of ``instants`` (the people did not move), a
@@ -128,7 +129,8 @@ def _static_copies(
     ``background``: a textured band along each camera's top edge, the same at
     both instants (a static camera's room: many SIFT matches between its own
     instants, none with the other cameras). ``drop``: images left out of the
-    database (a camera that missed an instant).
+    database (a camera that missed an instant). ``anonymous``: the people without
+    their ids (else each keeps its own at every instant).
     -> (database, image folder, every image name)."""
     import cv2
 
@@ -162,7 +164,7 @@ def _static_copies(
         n: ImagePrior(
             image_name=n,
             persons=tuple(
-                dataclasses.replace(p, person_id=None)
+                dataclasses.replace(p, person_id=None) if anonymous else p
                 for p in priors.images[source[n]].persons
             ),
         )
@@ -301,14 +303,16 @@ def test_same_pixels_need_many_inliers_and_no_shift() -> None:
         assert bool(got) is found, (H, inliers)
 
 
+@pytest.mark.parametrize("anonymous", [True, False])
 def test_a_scene_that_did_not_move_repeats_every_keypoint_error(
-    dome_scene: Path, tmp_path: Path
+    dome_scene: Path, tmp_path: Path, anonymous: bool
 ) -> None:
     """Two instants of the same pictures (nobody moved): `map` knows the instant
-    of every static-camera person, and each keypoint repeats the other instant's
-    error exactly (design effect 2: the two instants count as one)."""
+    of every static-camera person, anonymous or with ids, and each keypoint
+    repeats the other instant's error exactly (design effect 2: the two instants
+    count as one)."""
     names = sorted(database.read_views(dome_scene / "database.db").image_names)
-    db, _, _ = _static_copies(dome_scene, tmp_path, names[:4])
+    db, _, _ = _static_copies(dome_scene, tmp_path, names[:4], anonymous=anonymous)
     inputs = read_inputs(db, MappingOptions(), None)
     assert inputs.instant_of is not None
     assert sorted(set(inputs.instant_of.values())) == [".jpg", "_t2.jpg"]
