@@ -7,13 +7,13 @@ tracks by identity (COLMAP's BA, the keypoint BA's Cauchy loss, no surface VCs, 
 camera check) from two starts: that model and the calibration itself. When both
 converge to the same poses, the error left is where the keypoints' least-squares
 optimum lies: no mapper, initialisation or solver change can remove it; only other
-evidence or another weighting can. The same two with the keypoints weighted by their
-repeated errors, as `map` weighs them (colmap_vc/gba/repeats.py: a person who
-stood still counts about once). Then the same from the calibration with one camera left out, with
-groups of landmarks left out (which kinds of landmark pull the optimum away), and
-with one labelled person's keypoints alone, left out, or at one of the instants
-only (tests/data/pose2sim_people.json: the real man, on pose2sim_multi the
-composited avatar, and the bystander of cam01 and cam02).
+evidence or another weighting can. The same two with the keypoints weighted by
+their repeated errors, as `map` weighs them (colmap_vc/gba/repeats.py: a person
+who stood still counts about once). Then the same from the calibration with one
+camera left out, with groups of landmarks left out (which kinds of landmark pull
+the optimum away), and with one labelled person's keypoints alone, left out, or at
+one of the instants only (tests/data/pose2sim_people.json: the real man, on
+pose2sim_multi the composited avatar, and the bystander of cam01 and cam02).
 
 Also reported: each camera's rotation residual after the best common rotation of
 the model onto the calibration, in the camera's own axes (x right, y down, z

@@ -10,6 +10,7 @@ import pycolmap
 import pytest
 
 from colmap_vc.evaluation import evaluate_reconstruction
+from colmap_vc.gba import repeats
 from colmap_vc.gba.ceres import PeopleNoise, bundle_adjust_inplace, weighted_points
 from colmap_vc.gba.correlated import correlated_noise
 from colmap_vc.gba.noise import cluster_noise, reprojection_residuals
@@ -405,6 +406,22 @@ def test_a_person_who_stood_still_counts_once_and_one_who_moved_fully():
     m_again = repeat_design(again, instant_of, sigma_px=10.0)
     by_row = dict(zip(perm[again.point2D_idx].tolist(), m_again.tolist(), strict=True))
     assert np.allclose([by_row[k] for k in tracks.point2D_idx.tolist()], m)
+
+
+def test_repeats_compared_in_chunks_give_the_same_design(monkeypatch):
+    """Many instants are compared a chunk of (image, landmark) groups at a time:
+    the same design effects as all at once."""
+    rng = np.random.default_rng(2)
+    n = 300
+    xy = rng.uniform(0, 60, (n, 2))
+    identity = rng.integers(0, 40, n)
+    landmark = rng.integers(0, 3, n)
+    tracks = _landmarks(xy, identity, landmark)
+    instant_of = {i: f"t{i % 7}" for i in range(40)}
+    whole = repeat_design(tracks, instant_of, sigma_px=10.0)
+    monkeypatch.setattr(repeats, "MAX_PAIRS", 50)
+    assert np.allclose(repeat_design(tracks, instant_of, sigma_px=10.0), whole)
+    assert (whole > 1.5).any()
 
 
 def test_the_correlation_from_distance_is_the_bias_share_of_the_noise():

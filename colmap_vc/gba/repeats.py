@@ -40,6 +40,11 @@ from ..keypoint_tracks import KeypointTracks
 from ..structs import FloatArray
 from .ceres import PeopleNoise, log_rounded
 
+MAX_PAIRS = 4_000_000
+"""Observation pairs compared at once (about 100 MB of temporaries): 80 instants of
+3 people seen by 4 cameras are 7.6 million pairs, a few minutes of video at
+several instants a second many more."""
+
 MIN_DESIGN = 1.04
 """A track with no observation whose design effect reaches this keeps COLMAP's
 own weight (unit, the keypoints' loss): its noise, sqrt(m), would round to 1 in
@@ -53,22 +58,22 @@ def repeat_design(
     ``instant_of``: identity -> instant; identities it does not name (an image
     that is not a static camera's) repeat nothing."""
     assert tracks.keys is not None
-    names = sorted(set(instant_of.values()))
-    identity = tracks.keys[:, 0]
+    index = {name: k for k, name in enumerate(sorted(set(instant_of.values())))}
     when = np.array(
         [
-            names.index(instant_of[int(k)]) if int(k) in instant_of else -1
-            for k in identity.tolist()
-        ],  # loop over tracks
+            index[instant_of[k]] if k in instant_of else -1
+            for k in tracks.keys[:, 0].tolist()
+        ],
         dtype=np.int64,
-    )[tracks.track]
+    )[tracks.track]  # loop over tracks
     landmark = tracks.keys[tracks.track, 1]
     design = np.ones(len(tracks.track))
     known = np.flatnonzero(when >= 0)
     if len(known) < 2 or sigma_px <= 0:
         return design
     # Pairs within each (image, landmark): every observation with every one of
-    # its group, itself included (rho 0 there: same instant).
+    # its group, itself included (rho 0 there: same instant). Groups hold the
+    # instants times the people; chunks of them bound the pairs held at once.
     _, group = np.unique(
         np.stack([tracks.image_id[known], landmark[known]], axis=1),
         axis=0,
@@ -77,15 +82,21 @@ def repeat_design(
     group = group.ravel()
     order = known[np.argsort(group, kind="stable")]
     sizes = np.bincount(group)
-    starts = np.cumsum(sizes) - sizes
-    size_of = sizes[np.sort(group)]
-    start_of = starts[np.sort(group)]
-    i = np.repeat(order, size_of)
-    offset = np.arange(len(i)) - np.repeat(np.cumsum(size_of) - size_of, size_of)
-    j = order[np.repeat(start_of, size_of) + offset]
-    d2 = ((tracks.xy_img[i] - tracks.xy_img[j]) ** 2).sum(axis=1)
-    rho = np.clip(1.0 - d2 / (4.0 * sigma_px**2), 0.0, None) * (when[i] != when[j])
-    design += np.bincount(i, weights=rho, minlength=len(design))
+    ends = np.cumsum(sizes)
+    chunk = np.cumsum(sizes**2) // MAX_PAIRS
+    for c in np.unique(chunk).tolist():  # loop over chunks of groups
+        groups = np.flatnonzero(chunk == c)
+        size_of = np.repeat(sizes[groups], sizes[groups])
+        rows = order[ends[groups[0]] - sizes[groups[0]] : ends[groups[-1]]]
+        start_of = np.repeat(np.cumsum(sizes[groups]) - sizes[groups], sizes[groups])
+        i = np.repeat(rows, size_of)
+        offset = np.arange(len(i)) - np.repeat(np.cumsum(size_of) - size_of, size_of)
+        j = rows[np.repeat(start_of, size_of) + offset]
+        d2 = ((tracks.xy_img[i] - tracks.xy_img[j]) ** 2).sum(axis=1)
+        rho = np.clip(1.0 - d2 / (4.0 * sigma_px**2), 0.0, None)
+        design += np.bincount(
+            i, weights=rho * (when[i] != when[j]), minlength=len(design)
+        )
     return design
 
 
