@@ -424,12 +424,16 @@ def test_repeats_compared_in_chunks_give_the_same_design(monkeypatch):
     assert (whole > 1.5).any()
 
 
-def test_the_correlation_from_distance_is_the_bias_share_of_the_noise():
+@pytest.mark.parametrize(("sd_b", "sd_u"), [(9.0, 3.0), (5.0, 5.0), (0.0, 5.0)])
+def test_the_correlation_from_distance_is_the_bias_share_of_the_noise(sd_b, sd_u):
     """Errors e_t = b + u_t of a still person's landmark: two instants' errors
-    correlate by var(b) / sigma^2, what 1 - d^2 / (4 sigma^2) estimates on
-    average from their pixel distance d (module doc of gba.repeats)."""
+    correlate by rho = var(b) / sigma^2, what 1 - d^2 / (4 sigma^2) estimates
+    from their pixel distance d (module doc of gba.repeats). Clipped at 0, its
+    mean is 1 - (1 - rho)(1 - exp(-1 / (1 - rho))): rho where the bias dominates,
+    above it where the jitter does (1/e for independent errors, which then
+    weigh less than they could, none wrongly)."""
     rng = np.random.default_rng(1)
-    n, sd_b, sd_u = 4000, 9.0, 3.0
+    n = 4000
     sigma = np.hypot(sd_b, sd_u)
     b = rng.normal(0, sd_b, (n, 2))
     xy = np.concatenate(
@@ -446,4 +450,6 @@ def test_the_correlation_from_distance_is_the_bias_share_of_the_noise():
         keys=keys,
     )
     m = repeat_design(tracks, {0: "a", 1: "b"}, sigma_px=float(sigma))
-    assert abs(np.mean(m - 1.0) - sd_b**2 / sigma**2) < 0.01
+    rho = sd_b**2 / sigma**2
+    expected = 1.0 - (1.0 - rho) * (1.0 - np.exp(-1.0 / (1.0 - rho)))
+    assert abs(np.mean(m - 1.0) - expected) < 0.015

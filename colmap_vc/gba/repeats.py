@@ -25,6 +25,12 @@ does for surface samples) gives a person who stood still for n instants the
 weight of about one instant, and one who moved its n. People of the same
 instant are different people, whatever their distance: never repeats.
 
+One pair's estimate is one draw: clipped at 0, its mean is
+1 - (1 - rho)(1 - exp(-1 / (1 - rho))), rho itself where the bias dominates and
+more where the jitter does (1/e where the errors are independent). A still
+person whose errors are all jitter then weighs less than he could, a loss of
+precision, not a bias.
+
 sigma is measured in the model: the keypoints' spread against their tracks'
 points (:func:`colmap_vc.gba.correlated.correlated_noise`), not assumed.
 """
