@@ -35,7 +35,7 @@ import pycolmap
 from .camera_check import check_cameras_inplace
 from .gba.ceres import PeopleNoise, bundle_adjust_inplace, log_rounded
 from .gba.correlated import correlated_noise
-from .gba.repeats import repeat_noise
+from .gba.repeats import repeat_design, repeat_noise
 from .keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
@@ -334,7 +334,12 @@ def keypoint_bundle_adjustment(
             if out.exists_point3D(point_id):
                 out.delete_point3D(point_id)
         noise, num_surface = add_weighted_surface(
-            records, out, tracks, options, exchanged
+            records,
+            out,
+            tracks,
+            options,
+            exchanged,
+            instant_of if options.weigh_repeats else None,
         )
         if repeats is not None:
             noise = noise.or_else(repeats)
@@ -405,6 +410,7 @@ def add_weighted_surface(
     tracks: KeypointTracks,
     options: KeypointBaOptions,
     exchanged: frozenset[tuple[int, int]] = frozenset(),
+    instant_of: Mapping[int, str] | None = None,
 ) -> tuple[PeopleNoise, int]:
     """Add the surface tracks by identity of ``rec``'s posed images (its poses
     adjusted by the keypoints ``tracks``) and weigh each surface observation
@@ -412,7 +418,9 @@ def add_weighted_surface(
     (:mod:`colmap_vc.gba.correlated`) -> (the people's noise, surface
     observations added). The keypoints keep COLMAP's loss and unit weight.
     People in ``exchanged`` ((image, identity); -1: the whole image) add none:
-    their mesh was turned front to back."""
+    their mesh was turned front to back. ``instant_of`` (static cameras:
+    identity -> instant) also weighs each sample by how much it repeats the
+    same sample of the other instants' people (:mod:`colmap_vc.gba.repeats`)."""
     registered = np.array(
         sorted(i for i, im in rec.images.items() if im.has_pose), dtype=np.int64
     )
@@ -431,7 +439,7 @@ def add_weighted_surface(
             code, person[:, 0] * width + person[:, 1]
         )
         surface = subset(surface, np.isin(code, kept) & ~out)
-    noise = surface_noise(rec, tracks, surface, options)
+    noise = surface_noise(rec, tracks, surface, options, instant_of)
     if not any(np.isfinite(v).any() for v in noise.sigma_px.values()):
         return noise, 0
     good, counts = add_keypoint_points(rec, surface, options.min_track_length)
@@ -443,6 +451,7 @@ def surface_noise(
     keypoints: KeypointTracks,
     surface: KeypointTracks,
     options: KeypointBaOptions,
+    instant_of: Mapping[int, str] | None = None,
 ) -> PeopleNoise:
     """The noise of each ``surface`` observation in keypoint units: its spread
     times the square root of its design effect (:mod:`colmap_vc.gba.correlated`),
@@ -459,7 +468,12 @@ def surface_noise(
         return PeopleNoise(sigma_px=sigma, robust_px=robust)
     unit = max(float(np.median(kp.sigma_px)), options.min_sigma_px)
     noise = correlated_noise(rec, surface, triangulate_tracks(rec, surface)[0])
-    per_obs = log_rounded(noise.observation_sigma_px(options.min_sigma_px) / unit)
+    per_obs = noise.observation_sigma_px(options.min_sigma_px) / unit
+    if instant_of:  # the instants repeat the whole mesh: separable correlation
+        assert options.loss_scale_px is not None
+        sigma_kp = options.loss_scale_px / RAYLEIGH_MEDIAN
+        per_obs = per_obs * np.sqrt(repeat_design(surface, instant_of, sigma_kp))
+    per_obs = log_rounded(per_obs)
     spread = noise.observation_spread_px(options.min_sigma_px)
     ok = np.isfinite(per_obs)
     for image_id in np.unique(surface.image_id[ok]):  # loop over images

@@ -13,7 +13,8 @@ from conftest import extract_database
 from colmap_vc import cli, database
 from colmap_vc.evaluation import camera_distance_ratio
 from colmap_vc.gba.repeats import repeat_design
-from colmap_vc.keypoint_tracks import keypoint_tracks
+from colmap_vc.keypoint_ba import KeypointBaOptions, surface_noise, with_loss_scale
+from colmap_vc.keypoint_tracks import keypoint_tracks, surface_tracks
 from colmap_vc.mapping.inputs import read_inputs
 from colmap_vc.mapping.options import MappingOptions
 from colmap_vc.mapping.outputs import static_members_left_out
@@ -322,3 +323,30 @@ def test_a_scene_that_did_not_move_repeats_every_keypoint_error(
     assert set(np.unique(tracks.keys[:, 0]).tolist()) <= set(inputs.instant_of)
     m = repeat_design(tracks, inputs.instant_of, sigma_px=5.0)
     assert np.allclose(m, 2.0)
+
+
+def test_a_still_scene_doubles_the_noise_of_every_surface_sample(
+    dome_scene: Path, tmp_path: Path
+) -> None:
+    """The GBA's surface samples of two identical instants repeat each other: each
+    one's noise variance doubles (the instants count as one), on top of its
+    correlation with its neighbours."""
+    import pycolmap
+
+    names = sorted(database.read_views(dome_scene / "database.db").image_names)
+    db, images, _ = _static_copies(dome_scene, tmp_path, names[:4])
+    _map_poses(db, images, tmp_path / "sparse")
+    rec = pycolmap.Reconstruction(tmp_path / "sparse" / "0")
+    inputs = read_inputs(db, MappingOptions(), None)
+    posed = np.array(sorted(rec.reg_image_ids()), dtype=np.int64)
+    kp = keypoint_tracks(inputs.records, posed)
+    surface = surface_tracks(inputs.records, posed)
+    options = with_loss_scale(KeypointBaOptions(), rec)
+    alone = surface_noise(rec, kp, surface, options)
+    repeated = surface_noise(rec, kp, surface, options, inputs.instant_of)
+    ratios = np.concatenate(
+        [repeated.sigma_px[i] / alone.sigma_px[i] for i in alone.sigma_px]
+    )
+    ratios = ratios[np.isfinite(ratios)]
+    assert len(ratios) > 100
+    assert np.allclose(ratios, np.sqrt(2.0), rtol=0.03)
