@@ -15,6 +15,10 @@ from a mesh fitted to the same landmarks add correlated errors, docs/real-data.m
 On pose2sim (docs/results.md) the pass converges to the same poses from the mapper's
 model, from the keypoint-only model and from the ground truth.
 
+With static cameras, a keypoint whose error repeats the same landmark of another
+instant's person (someone who stood still) is weighted down by how much it repeats
+(:mod:`colmap_vc.gba.repeats`): such a person's instants count about once.
+
 With ``surface_tracks`` (``map --gba``) the pass is the generalized bundle
 adjustment instead: after the camera check every surface VC joins its track by
 identity, weighted by its measured spread and correlation with its neighbours
@@ -171,7 +175,7 @@ class KeypointBaSummary:
 class RepeatSummary:
     """Keypoints repeated over static cameras' instants (:mod:`.gba.repeats`)."""
 
-    sigma_px: float  # the keypoints' spread the correlation is measured against
+    sigma_px: float  # the keypoints' error per coordinate the repeats are read at
     num_observations: int  # keypoint observations of the instants' people
     effective: float  # what they count as: the sum of 1 / m
 
@@ -394,7 +398,8 @@ def _repeats(
     )
     logger.info(
         "keypoint BA: the static cameras' %d keypoint observations count as %.0f "
-        "(errors repeated by people who stood still; keypoint error %.1f px)",
+        "(errors repeated by people who stood still; keypoint error %.1f px per "
+        "coordinate)",
         summary.num_observations,
         summary.effective,
         sigma,

@@ -144,7 +144,7 @@ def refine_with_gravity_inplace(
         registered_ids = np.array(sorted(registered.values()), dtype=np.int64)
         tracks = keypoint_tracks(inputs.records, registered_ids)
     noise = keypoint_noise_px(rec, tracks, min_sigma_px)
-    surface = (  # the repeated keypoints' weights stay: they are keypoints
+    surface = (  # the covariance is the keypoints', repeated or not (at 1 px)
         None if people is None else people.without(tracks.image_id, tracks.point2D_idx)
     )
     absorbed = absorbed_noise_px(rec, registered, measured, loss_scale_px, surface)
