@@ -44,8 +44,8 @@ from colmap_vc.estimators.blazepose import FEET_NAMES
 from colmap_vc.estimators.body import anny_keypoint_names
 from colmap_vc.evaluation import evaluate_poses
 from colmap_vc.gba.ceres import bundle_adjust_inplace
-from colmap_vc.gba.repeats import repeat_noise
-from colmap_vc.keypoint_ba import RAYLEIGH_MEDIAN, KeypointBaOptions, with_loss_scale
+from colmap_vc.gba.repeats import keypoint_sigma_px, repeat_noise
+from colmap_vc.keypoint_ba import KeypointBaOptions, with_loss_scale
 from colmap_vc.keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
@@ -189,7 +189,7 @@ def adjusted(
     add_keypoint_points(out, tracks, 2)
     noise = None
     if instant_of:
-        sigma = loss_px / RAYLEIGH_MEDIAN
+        sigma = keypoint_sigma_px(loss_px)
         noise, _ = repeat_noise(out, tracks, instant_of, sigma, loss_px)
     bundle_adjust_inplace(out, loss_px, noise)
     return out

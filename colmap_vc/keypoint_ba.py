@@ -39,7 +39,7 @@ import pycolmap
 from .camera_check import check_cameras_inplace
 from .gba.ceres import PeopleNoise, bundle_adjust_inplace, log_rounded
 from .gba.correlated import correlated_noise
-from .gba.repeats import repeat_design, repeat_noise
+from .gba.repeats import keypoint_sigma_px, repeat_design, repeat_noise
 from .keypoint_tracks import (
     KeypointTracks,
     add_keypoint_points,
@@ -56,9 +56,6 @@ from .people_check import check_few_view_people, unchecked_people
 from .vc_records import VcRecords
 
 logger = logging.getLogger(__name__)
-
-RAYLEIGH_MEDIAN = float(np.sqrt(2.0 * np.log(2.0)))
-"""Median of the length of a 2D error over its standard deviation per coordinate."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)
@@ -193,14 +190,10 @@ def surface_budget_noise(
 
     The same prior strength as a random subset of ``per_image`` observations per
     image, without the draw: every sample speaks, none decides alone."""
-    sigma = {
-        i: np.full(im.num_points2D(), np.nan)
-        for i, im in rec.images.items()
-        if im.has_pose
-    }
-    robust = {i: np.full_like(v, np.nan) for i, v in sigma.items()}
+    out = PeopleNoise.none(rec)
+    sigma, robust = out.sigma_px, out.robust_px
     if not len(observations):
-        return PeopleNoise(sigma_px=sigma, robust_px=robust)
+        return out
     images, index, count = np.unique(
         observations[:, 0], return_inverse=True, return_counts=True
     )
@@ -209,7 +202,7 @@ def surface_budget_noise(
         rows = observations[index == k, 1]
         sigma[image_id][rows] = noise[k]
         robust[image_id][rows] = loss_scale_px
-    return PeopleNoise(sigma_px=sigma, robust_px=robust)
+    return out
 
 
 def with_loss_scale(
@@ -389,7 +382,7 @@ def _repeats(
     ok = np.isin(tracks.keys[tracks.track, 0], list(instant_of))
     if not ok.any():
         return None, None
-    sigma = options.loss_scale_px / RAYLEIGH_MEDIAN
+    sigma = keypoint_sigma_px(options.loss_scale_px)
     noise, design = repeat_noise(rec, tracks, instant_of, sigma, options.loss_scale_px)
     summary = RepeatSummary(
         sigma_px=sigma,
@@ -463,20 +456,19 @@ def surface_noise(
     over the keypoints' spread, which keep COLMAP's loss and unit weight; a
     Cauchy loss at ``robust_sigmas`` spreads. Both kinds' spreads are measured
     against their tracks' points triangulated with ``rec``'s poses."""
-    registered = sorted(i for i, im in rec.images.items() if im.has_pose)
-    sigma = {i: np.full(rec.image(i).num_points2D(), np.nan) for i in registered}
-    robust = {i: np.full_like(v, np.nan) for i, v in sigma.items()}
+    out = PeopleNoise.none(rec)
+    sigma, robust = out.sigma_px, out.robust_px
     if surface.num_tracks == 0 or keypoints.num_tracks == 0:
-        return PeopleNoise(sigma_px=sigma, robust_px=robust)
+        return out
     kp = correlated_noise(rec, keypoints, triangulate_tracks(rec, keypoints)[0])
     if not len(kp.sigma_px):
-        return PeopleNoise(sigma_px=sigma, robust_px=robust)
+        return out
     unit = max(float(np.median(kp.sigma_px)), options.min_sigma_px)
     noise = correlated_noise(rec, surface, triangulate_tracks(rec, surface)[0])
     per_obs = noise.observation_sigma_px(options.min_sigma_px) / unit
     if instant_of:  # the instants repeat the whole mesh: separable correlation
         assert options.loss_scale_px is not None
-        sigma_kp = options.loss_scale_px / RAYLEIGH_MEDIAN
+        sigma_kp = keypoint_sigma_px(options.loss_scale_px)
         per_obs = per_obs * np.sqrt(repeat_design(surface, instant_of, sigma_kp))
     per_obs = log_rounded(per_obs)
     spread = noise.observation_spread_px(options.min_sigma_px)
@@ -496,4 +488,4 @@ def surface_noise(
         np.round(noise.bin_edges_px[1:], 1),
         float(np.nanmedian(noise.design)) if ok.any() else float("nan"),
     )
-    return PeopleNoise(sigma_px=sigma, robust_px=robust)
+    return out

@@ -42,10 +42,26 @@ class PeopleNoise:
     sigma_px: Mapping[int, FloatArray]  # (num points2D,) noise px; NaN: classic
     robust_px: Mapping[int, FloatArray]  # (num points2D,) Cauchy scale px
 
+    @classmethod
+    def none(cls, rec: pycolmap.Reconstruction) -> PeopleNoise:
+        """No noise (every observation COLMAP's) for each posed image of ``rec``:
+        arrays to fill in."""
+        sigma = {
+            i: np.full(im.num_points2D(), np.nan)
+            for i, im in rec.images.items()
+            if im.has_pose
+        }
+        return cls(sigma_px=sigma, robust_px={i: v.copy() for i, v in sigma.items()})
+
+    def _copy(self) -> tuple[dict[int, FloatArray], dict[int, FloatArray]]:
+        return (
+            {i: v.copy() for i, v in self.sigma_px.items()},
+            {i: v.copy() for i, v in self.robust_px.items()},
+        )
+
     def or_else(self, other: PeopleNoise) -> PeopleNoise:
         """This noise, and ``other``'s where this has none."""
-        sigma = {i: v.copy() for i, v in self.sigma_px.items()}
-        robust = {i: v.copy() for i, v in self.robust_px.items()}
+        sigma, robust = self._copy()
         for i, v in other.sigma_px.items():  # loop over images
             if i not in sigma:
                 sigma[i], robust[i] = v.copy(), other.robust_px[i].copy()
@@ -57,8 +73,7 @@ class PeopleNoise:
 
     def without(self, image_id: np.ndarray, point2D_idx: np.ndarray) -> PeopleNoise:
         """This noise with none for the given observations (rows of the two)."""
-        sigma = {i: v.copy() for i, v in self.sigma_px.items()}
-        robust = {i: v.copy() for i, v in self.robust_px.items()}
+        sigma, robust = self._copy()
         for i in np.unique(image_id).tolist():  # loop over images
             if i in sigma:
                 rows = point2D_idx[image_id == i]

@@ -61,6 +61,13 @@ own weight (unit, the keypoints' loss): its noise, sqrt(m), would round to 1 in
 the 2% steps the weights take (:func:`~colmap_vc.gba.ceres.log_rounded`)."""
 
 
+def keypoint_sigma_px(loss_scale_px: float) -> float:
+    """The keypoints' error per coordinate from their Cauchy scale, their median 2D
+    error: over sqrt(2 ln 2), the median length of a 2D Gaussian error in units of
+    its per-coordinate deviation (module doc)."""
+    return loss_scale_px / float(np.sqrt(2.0 * np.log(2.0)))
+
+
 def repeat_design(
     tracks: KeypointTracks, instant_of: Mapping[int, str], sigma_px: float
 ) -> FloatArray:
@@ -124,12 +131,8 @@ def repeat_noise(
     ``tracks``). Only the tracks with a repeated observation (m of at least
     :data:`MIN_DESIGN`) get a noise, all their observations: the others keep
     COLMAP's weight."""
-    sigma = {
-        i: np.full(im.num_points2D(), np.nan)
-        for i, im in rec.images.items()
-        if im.has_pose
-    }
-    robust = {i: np.full_like(v, np.nan) for i, v in sigma.items()}
+    out = PeopleNoise.none(rec)
+    sigma, robust = out.sigma_px, out.robust_px
     design = repeat_design(tracks, instant_of, sigma_px)
     repeated = np.zeros(tracks.num_tracks, dtype=bool)
     np.logical_or.at(repeated, tracks.track, design >= MIN_DESIGN)
@@ -139,4 +142,4 @@ def repeat_noise(
         rows = sel & (tracks.image_id == image_id)
         sigma[image_id][tracks.point2D_idx[rows]] = noise[rows]
         robust[image_id][tracks.point2D_idx[rows]] = loss_scale_px
-    return PeopleNoise(sigma_px=sigma, robust_px=robust), design
+    return out, design
