@@ -119,6 +119,45 @@ def cam_of(name: str) -> str:
     return name.split("_")[0]
 
 
+def frames_and_priors(
+    dataset: str, work: Path, most: int
+) -> tuple[Path, Path, list[int], list[int]]:
+    """The videos' frames at ``most`` instants (`colmap-vc frames`, farthest-point
+    order) and their priors, made once in ``work`` -> (frames folder, priors
+    folder, the instants in that order, the cameras' frame offsets)."""
+    data = SHARED / f"pose2sim_{dataset}"
+    frames = work / "frames"
+    offsets = [
+        c["video_frame_offset"]
+        for c in json.loads((data / "cameras.json").read_text())["cameras"]
+    ]
+    summary = extract_frames(
+        videos(DEMOS[dataset]), frames, offsets=offsets, num_instants=most
+    )
+    instants = [int(t) for t in summary.instants]  # farthest-point order
+    priors = work / "priors"
+    if not (priors / "priors.json").exists():
+        names = sorted(summary.written)
+        calib, _ = load_calibration(data)
+        cameras = {n.split("_")[0]: c for n, c in calib.items()}
+        db = work / "all.db"
+        (work / "_all").mkdir(exist_ok=True)
+        link = work / "_all" / "images"
+        if not link.exists():
+            link.symlink_to(frames.resolve(), target_is_directory=True)
+        make_database(
+            work / "_all", names, {n: cameras[n.split("_")[0]] for n in names}, db
+        )
+        code = cli.main(
+            [
+                *("priors", str(frames), "--output", str(priors)),
+                *("--database", str(db), "--no-progress"),
+            ]
+        )
+        assert code == 0, f"priors failed ({code})"
+    return frames, priors, instants, offsets
+
+
 def run(
     data: Path,
     num: int,
@@ -241,34 +280,9 @@ def main() -> None:
     data = SHARED / f"pose2sim_{args.dataset}"
     demo = DEMOS[args.dataset]
     work = OUT / f"static_instants{suffix}"
-    frames = work / "frames"
-    offsets = [
-        c["video_frame_offset"]
-        for c in json.loads((data / "cameras.json").read_text())["cameras"]
-    ]
-    most = max(args.instants)
-    summary = extract_frames(videos(demo), frames, offsets=offsets, num_instants=most)
-    instants = [int(t) for t in summary.instants]  # farthest-point order
-    priors = work / "priors"
-    if not (priors / "priors.json").exists():
-        names = sorted(summary.written)
-        calib, _ = load_calibration(data)
-        cameras = {n.split("_")[0]: c for n, c in calib.items()}
-        db = work / "all.db"
-        (work / "_all").mkdir(exist_ok=True)
-        link = work / "_all" / "images"
-        if not link.exists():
-            link.symlink_to(frames.resolve(), target_is_directory=True)
-        make_database(
-            work / "_all", names, {n: cameras[n.split("_")[0]] for n in names}, db
-        )
-        code = cli.main(
-            [
-                *("priors", str(frames), "--output", str(priors)),
-                *("--database", str(db), "--no-progress"),
-            ]
-        )
-        assert code == 0, f"priors failed ({code})"
+    frames, priors, instants, offsets = frames_and_priors(
+        args.dataset, work, max(args.instants)
+    )
     everyone = tuple(sorted({cam_of(n) for n in load_calibration(data)[0]}))
     subsets = list(combinations(everyone, args.cameras))
     results = {
