@@ -96,6 +96,7 @@ def run_instant(
             ]
         )
         out[arm] = _evaluate(_largest_model(sparse) if code == 0 else None, gt_cam)
+        out[arm]["images"] = len(names)
     return out
 
 
