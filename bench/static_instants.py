@@ -136,7 +136,9 @@ def frames_and_priors(
     )
     instants = [int(t) for t in summary.instants]  # farthest-point order
     priors = work / "priors"
-    if not (priors / "priors.json").exists():
+    spec = priors / "priors.json"
+    have = set(json.loads(spec.read_text())["images"]) if spec.exists() else set()
+    if not set(summary.written) <= have:  # none yet, or made for fewer instants
         names = sorted(summary.written)
         calib, _ = load_calibration(data)
         cameras = {n.split("_")[0]: c for n, c in calib.items()}
@@ -152,6 +154,7 @@ def frames_and_priors(
             [
                 *("priors", str(frames), "--output", str(priors)),
                 *("--database", str(db), "--no-progress"),
+                *(["--overwrite"] if have else []),
             ]
         )
         assert code == 0, f"priors failed ({code})"
