@@ -52,6 +52,32 @@ def robust_pnp(
     return float(np.median(residuals_px(camera, pose.matrix(), xy, pts))), pose
 
 
+ImageFit = tuple[FloatArray, FloatArray, IndexArray, "pycolmap.Rigid3d | None"]
+"""An image's keypoints under one labelling against the other cameras' points:
+(pixels, points, track ids, the image's PnP pose on all of them)."""
+
+
+def image_fit(
+    rec: pycolmap.Reconstruction,
+    labels: KeypointTracks,
+    image_id: int,
+    others: tuple[FloatArray, IndexArray],
+    options: KeypointBaOptions,
+    max_error_px: float,
+) -> ImageFit:
+    """Image ``image_id``'s keypoints under ``labels`` whose points ``others``
+    (the points all *other* cameras triangulate and their view counts) holds, and
+    the image's best pose for all of them (:func:`robust_pnp`)."""
+    X, counts = others
+    mine = labels.image_id == image_id
+    t = labels.track[mine]
+    ok = (counts[t] >= 2) & np.isfinite(X[t]).all(axis=1)
+    xy, pts, t = labels.xy_img[mine][ok], X[t[ok]], t[ok]
+    camera = rec.camera(rec.image(image_id).camera_id)
+    _, pose = robust_pnp(camera, xy, pts, options, max_error_px)
+    return xy, pts, t, pose
+
+
 def label_test(
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
@@ -61,6 +87,7 @@ def label_test(
     others: tuple[FloatArray, IndexArray],
     options: KeypointBaOptions,
     max_error_px: float,
+    as_labelled: ImageFit | None = None,
 ) -> tuple[float, float, int, pycolmap.Rigid3d | None]:
     """Person ``identity`` of image ``image_id`` as labelled against the same with
     left and right exchanged (``swapped``), each with the image at its best pose
@@ -68,23 +95,20 @@ def label_test(
     triangulate and their view counts (the same for both labellings). Returns
     (the person's median error as labelled, exchanged, its number of keypoints,
     the image's pose with the exchanged labels). As labelled: the better of the
-    current pose and PnP."""
+    current pose and PnP. ``as_labelled``: :func:`image_fit` of ``tracks``, the
+    same for every person of the image (computed when not given)."""
     assert tracks.keys is not None
     image = rec.image(image_id)
     camera = rec.camera(image.camera_id)
-    X, counts = others
+    if as_labelled is None:
+        as_labelled = image_fit(rec, tracks, image_id, others, options, max_error_px)
+    exchanged = image_fit(rec, swapped, image_id, others, options, max_error_px)
     errors: list[float] = []
-    pose: pycolmap.Rigid3d | None = None
     count = 0
-    for labels in (tracks, swapped):
-        mine = labels.image_id == image_id
-        t = labels.track[mine]
-        ok = (counts[t] >= 2) & np.isfinite(X[t]).all(axis=1)
-        xy, pts, t = labels.xy_img[mine][ok], X[t[ok]], t[ok]
+    for (xy, pts, t, pose), current in ((as_labelled, True), (exchanged, False)):
         theirs = tracks.keys[t, 0] == identity
-        _, pose = robust_pnp(camera, xy, pts, options, max_error_px)
         poses = [] if pose is None else [pose.matrix()]
-        if labels is tracks:
+        if current:
             poses.append(image.cam_from_world().matrix())
             count = int(theirs.sum())
         errors.append(
@@ -97,7 +121,7 @@ def label_test(
                 default=np.inf,
             )
         )
-    return errors[0], errors[1], count, pose
+    return errors[0], errors[1], count, exchanged[3]
 
 
 def labels_exchanged(as_labelled: float, exchanged: float, n: int, z: float) -> bool:
@@ -137,12 +161,15 @@ def best_exchange(
     for i in sorted(candidates, key=lambda i: rec.image(i).name):
         others = solve_tracks(system, tracks, tracks.image_id == i)
         mine = tracks.track[tracks.image_id == i]
+        fit = None  # as labelled: one PnP per image, whoever is exchanged
         for identity in np.unique(tracks.keys[mine[partner[mine] >= 0], 0]).tolist():
             if (i, identity) in skip:
                 continue
+            if fit is None:
+                fit = image_fit(rec, tracks, i, others, options, limit_px)
             swapped = relabelled(tracks, i, partner, identity)
             as_labelled, exchanged, n, pose = label_test(
-                rec, tracks, swapped, i, identity, others, options, limit_px
+                rec, tracks, swapped, i, identity, others, options, limit_px, fit
             )
             logger.debug(
                 "camera check: %s person %d as labelled %.1f px, exchanged %.1f px "
