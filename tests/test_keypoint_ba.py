@@ -19,7 +19,10 @@ from colmap_vc.keypoint_tracks import (
     add_keypoint_points,
     keypoint_tracks,
     mirrored_tracks,
+    relabelled,
+    solve_tracks,
     subset,
+    track_system,
     triangulate_tracks,
 )
 from colmap_vc.mapping.up import keypoint_noise_px
@@ -479,14 +482,10 @@ def test_camera_check_tests_left_and_right_where_no_camera_misses_by_far(
             assert np.array_equal(got, truth[im.name]), im.name
 
 
-def test_every_person_a_camera_sees_from_the_back_is_exchanged(dome_scene, rng):
-    """A static camera's one image holds the people of every instant; a person
-    on a treadmill seen from the back is mislabelled at several of them. Each
-    (image, person) is exchanged on its own, so the second person of the same
-    camera is too (a camera once left the candidates after one exchange), and
-    every keypoint then fits its point. An exchanged person whose image holds
-    as many other keypoints leaves the tracks: a poor witness once the camera is
-    on the right side."""
+def _two_people_seen_from_the_back(dome_scene, rng):
+    """A static camera's image holding two instants' people, both labelled left
+    for right, posed where those labels fit -> (model with their points, tracks,
+    keypoints per person, the image's id and name)."""
     gt = pycolmap.Reconstruction(dome_scene / "gt" / "sparse")
     people = []
     for shift in ([0.0, 0.0, 0.0], [0.6, 0.4, 0.0]):  # two instants' people
@@ -521,6 +520,18 @@ def test_every_person_a_camera_sees_from_the_back_is_exchanged(dome_scene, rng):
         )
     _posed_where_labels_fit(rec, image_id, xy[sel], points)  # as the mapper would
     add_keypoint_points(rec, tracks, 2)
+    return rec, tracks, n, image_id, name
+
+
+def test_every_person_a_camera_sees_from_the_back_is_exchanged(dome_scene, rng):
+    """A static camera's one image holds the people of every instant; a person
+    on a treadmill seen from the back is mislabelled at several of them. Each
+    (image, person) is exchanged on its own, so the second person of the same
+    camera is too (a camera once left the candidates after one exchange), and
+    every keypoint then fits its point. An exchanged person whose image holds
+    as many other keypoints leaves the tracks: a poor witness once the camera is
+    on the right side."""
+    rec, tracks, n, image_id, name = _two_people_seen_from_the_back(dome_scene, rng)
     check = _label_check(rec, tracks, n)
     assert check.mirrored == check.relocalised == [name] and not check.left_out
     errors = [  # every observation of the rebuilt points
@@ -540,6 +551,46 @@ def test_every_person_a_camera_sees_from_the_back_is_exchanged(dome_scene, rng):
     # many keypoints); the second, then alone, stays as the camera's witness.
     seen = [e.image_id for p in rec.points3D.values() for e in p.track.elements]
     assert seen.count(image_id) == n
+
+
+def test_the_label_test_fits_an_image_as_labelled_once(dome_scene, rng, monkeypatch):
+    """The image's pose for all its keypoints as labelled is the same whichever
+    person's labels are exchanged: the label test fits it once per image (with
+    static cameras an image holds every instant's people), and each person's
+    test reads what it reads when it fits that pose itself."""
+    from colmap_vc import label_check
+
+    rec, tracks, n, image_id, _ = _two_people_seen_from_the_back(dome_scene, rng)
+    options = KeypointBaOptions(loss_scale_px=4.0, min_check_points=8)
+    partner = mirrored_tracks(tracks, {2000 + k: 2000 + (k ^ 1) for k in range(n)})
+    fits: list[int] = []
+    pnp = label_check.robust_pnp
+
+    def counted(*args, **kwargs):
+        fits.append(len(args[1]))
+        return pnp(*args, **kwargs)
+
+    monkeypatch.setattr(label_check, "robust_pnp", counted)
+    found = label_check.best_exchange(
+        rec, tracks, partner, [image_id], options, 50.0, set()
+    )
+    assert found is not None and found[0] == image_id
+    assert len(fits) == 1 + 2  # as labelled once, then each person exchanged
+    others = solve_tracks(
+        track_system(rec, tracks), tracks, tracks.image_id == image_id
+    )
+    fit = label_check.image_fit(rec, tracks, image_id, others, options, 50.0)
+    for identity in (0, 1):
+        swapped = relabelled(tracks, image_id, partner, identity)
+        given, fresh = (
+            label_check.label_test(
+                rec, tracks, swapped, image_id, identity, others, options, 50.0, f
+            )
+            for f in (fit, None)
+        )
+        assert given[:3] == fresh[:3] and given[2] == n
+        assert np.allclose(given[3].matrix(), fresh[3].matrix())
+        assert given[1] < given[0]  # exchanged, the person fits better
 
 
 def test_labels_exchanged_needs_a_gain_beyond_the_medians_sampling_error():
