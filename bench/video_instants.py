@@ -67,10 +67,16 @@ REFERENCE = "`map`"
 
 
 def run_instant(
-    data: Path, t: int, frames: Path, priors: Path, row: Path, map_only: bool
+    calibration: tuple[dict, dict],
+    t: int,
+    frames: Path,
+    priors: Path,
+    row: Path,
+    map_only: bool,
 ) -> dict[str, dict]:
-    """`augment` and every arm's `map` on the four frames of instant ``t``."""
-    calib, gt_shared = load_calibration(data)
+    """`augment` and every arm's `map` on the four frames of instant ``t``
+    (``calibration``: :func:`realdata.load_calibration`'s)."""
+    calib, gt_shared = calibration
     cameras = {cam_of(n): c for n, c in calib.items()}
     gt_cam = {cam_of(n): g for n, g in gt_shared.items()}
     names = sorted(f"{cam}_f{t:06d}.jpg" for cam in cameras)
@@ -167,11 +173,12 @@ def main() -> None:
         args.dataset, OUT / f"static_instants{suffix}", 20
     )
     work = OUT / f"video_instants{suffix}"
+    calibration = load_calibration(data)
     results = {}
     for t in sorted(instants):  # frame order: the table reads along the video
         logger.info("%s: frame %d", args.dataset, t)
         results[t] = run_instant(
-            data, t, frames, priors, work / f"f{t:06d}", args.map_only
+            calibration, t, frames, priors, work / f"f{t:06d}", args.map_only
         )
     elapsed = time.perf_counter() - t0
     write_json(
