@@ -187,6 +187,7 @@ def check_cameras_inplace(
     mirrored: list[str] = []
     whole: set[str] = set()  # images with every person exchanged at once
     exchanged_people: set[tuple[int, int]] = set()  # (image id, identity)
+    pending: list[tuple[int, int]] = []  # ranked for an exchange, not yet tried
     scale_px = loss_scale_px(rec, options.loss_scale_px, options.loss_scale_frac)
     partner = mirrored_tracks(tracks, mirror or {})
     while True:
@@ -241,6 +242,7 @@ def check_cameras_inplace(
                 adjust,
                 vc_identity,
                 exchanged_people,
+                pending,
             )
             if found is None:
                 break

@@ -8,7 +8,7 @@ from __future__ import annotations
 
 import logging
 from collections.abc import Callable
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import numpy as np
 import pycolmap
@@ -136,7 +136,61 @@ def labels_exchanged(as_labelled: float, exchanged: float, n: int, z: float) -> 
     return bool(np.log(exchanged / as_labelled) < -z * se)
 
 
-def best_exchange(
+class Exchange(NamedTuple):
+    """One person whose labels fit better exchanged (:func:`test_person`)."""
+
+    image_id: int
+    identity: int
+    swapped: KeypointTracks  # the tracks with that person exchanged
+    pose: pycolmap.Rigid3d  # the image's pose with the exchanged labels
+    as_labelled: float  # the person's median error as labelled, px
+    exchanged: float  # and exchanged, px
+    score: float  # log(exchanged / as labelled) sqrt(n): lower is clearer
+
+
+def test_person(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    partner: IndexArray,
+    image_id: int,
+    identity: int,
+    others: tuple[FloatArray, IndexArray],
+    fit: ImageFit,
+    options: KeypointBaOptions,
+    limit_px: float,
+) -> Exchange | None:
+    """Person ``identity`` of image ``image_id`` exchanged, when their keypoints
+    fit significantly better so (:func:`labels_exchanged`, within ``limit_px``);
+    ``others`` and ``fit`` as :func:`label_test` takes them."""
+    swapped = relabelled(tracks, image_id, partner, identity)
+    as_labelled, exchanged, n, pose = label_test(
+        rec, tracks, swapped, image_id, identity, others, options, limit_px, fit
+    )
+    logger.debug(
+        "camera check: %s person %d as labelled %.1f px, exchanged %.1f px "
+        "(%d keypoints)",
+        rec.image(image_id).name,
+        identity,
+        as_labelled,
+        exchanged,
+        n,
+    )
+    if pose is None or exchanged > limit_px or n < options.min_check_points:
+        return None
+    if not labels_exchanged(as_labelled, exchanged, n, options.label_test_z):
+        return None
+    score = float(np.log(exchanged / as_labelled) * np.sqrt(n))
+    return Exchange(image_id, identity, swapped, pose, as_labelled, exchanged, score)
+
+
+def _exchangeable(tracks: KeypointTracks, partner: IndexArray, image_id: int) -> list:
+    """The identities of image ``image_id`` with keypoints that have a mirror."""
+    assert tracks.keys is not None
+    mine = tracks.track[tracks.image_id == image_id]
+    return np.unique(tracks.keys[mine[partner[mine] >= 0], 0]).tolist()
+
+
+def ranked_exchanges(
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
     partner: IndexArray,
@@ -144,50 +198,50 @@ def best_exchange(
     options: KeypointBaOptions,
     limit_px: float,
     skip: set[tuple[int, int]],
-) -> tuple[int, int, KeypointTracks, pycolmap.Rigid3d, float, float] | None:
-    """Among the people of the ``candidates`` images, the one whose keypoints fit
-    the other cameras' points most significantly better with left and right
-    exchanged (:func:`labels_exchanged`, within ``limit_px``; (image, person)
-    pairs in ``skip`` are not tried): (image id, person, the tracks with that
-    person exchanged, the image's pose, median error as labelled, exchanged);
-    None when nobody's do. One person at a time: a prior is
-    turned per person, and another person of the image (or a false detection
-    linked across two images) keeps its labels. Visited in name order, ties go to
-    the first."""
-    assert tracks.keys is not None
-    Found = tuple[float, int, int, KeypointTracks, pycolmap.Rigid3d, float, float]
-    best: Found | None = None
+) -> list[Exchange]:
+    """Every person of the ``candidates`` images whose keypoints fit the other
+    cameras' points significantly better with left and right exchanged
+    (:func:`test_person`; (image, person) pairs in ``skip`` are not tried), most
+    significant first. One person at a time: a prior is turned per person, and
+    another person of the image (or a false detection linked across two images)
+    keeps its labels. Visited in name order, ties go to the first."""
+    found: list[Exchange] = []
     system = track_system(rec, tracks)
     for i in sorted(candidates, key=lambda i: rec.image(i).name):
         others = solve_tracks(system, tracks, tracks.image_id == i)
-        mine = tracks.track[tracks.image_id == i]
         fit = None  # as labelled: one PnP per image, whoever is exchanged
-        for identity in np.unique(tracks.keys[mine[partner[mine] >= 0], 0]).tolist():
+        for identity in _exchangeable(tracks, partner, i):
             if (i, identity) in skip:
                 continue
             if fit is None:
                 fit = image_fit(rec, tracks, i, others, options, limit_px)
-            swapped = relabelled(tracks, i, partner, identity)
-            as_labelled, exchanged, n, pose = label_test(
-                rec, tracks, swapped, i, identity, others, options, limit_px, fit
+            one = test_person(
+                rec, tracks, partner, i, identity, others, fit, options, limit_px
             )
-            logger.debug(
-                "camera check: %s person %d as labelled %.1f px, exchanged %.1f px "
-                "(%d keypoints)",
-                rec.image(i).name,
-                identity,
-                as_labelled,
-                exchanged,
-                n,
-            )
-            if pose is None or exchanged > limit_px or n < options.min_check_points:
-                continue
-            if not labels_exchanged(as_labelled, exchanged, n, options.label_test_z):
-                continue
-            score = np.log(exchanged / as_labelled) * np.sqrt(n)
-            if best is None or score < best[0]:
-                best = (score, i, identity, swapped, pose, as_labelled, exchanged)
-    return None if best is None else best[1:]
+            if one is not None:
+                found.append(one)
+    return sorted(found, key=lambda e: e.score)  # stable: name order on ties
+
+
+def retest(
+    rec: pycolmap.Reconstruction,
+    tracks: KeypointTracks,
+    partner: IndexArray,
+    image_id: int,
+    identity: int,
+    options: KeypointBaOptions,
+    limit_px: float,
+) -> Exchange | None:
+    """:func:`test_person` of one person on the model as it is now."""
+    if identity not in _exchangeable(tracks, partner, image_id):
+        return None
+    others = solve_tracks(
+        track_system(rec, tracks), tracks, tracks.image_id == image_id
+    )
+    fit = image_fit(rec, tracks, image_id, others, options, limit_px)
+    return test_person(
+        rec, tracks, partner, image_id, identity, others, fit, options, limit_px
+    )
 
 
 def exchange_labels_inplace(
@@ -244,25 +298,57 @@ def try_exchange(
     adjust: Callable[[pycolmap.Reconstruction], object],
     vc_identity: dict[int, IndexArray] | None = None,
     done: set[tuple[int, int]] | None = None,
+    pending: list[tuple[int, int]] | None = None,
 ) -> tuple[KeypointTracks, int, int, float, float] | None:
-    """Exchange left and right of the person :func:`best_exchange` finds, when
-    the adjusted model then fits all keypoints better (:func:`keypoint_cost`):
-    (the new tracks, the image re-posed, the person, median error as labelled,
-    exchanged). An exchange the adjustment does not confirm is undone and the
-    next person is tried; None when no exchange is confirmed. ``vc_identity``
-    (per image, the identity of each VC) limits the surface VCs that leave to
-    that person's; (image, person) pairs in ``done`` (exchanged before) are not
-    tried again, the image's other people are: a static camera's image holds the
-    same person seen from the back at several instants."""
+    """Exchange left and right of the most significant person
+    :func:`ranked_exchanges` finds, when the adjusted model then fits all keypoints
+    better (:func:`keypoint_cost`): (the new tracks, the image re-posed, the
+    person, median error as labelled, exchanged). An exchange the adjustment does
+    not confirm is undone and the next person is tried; None when no exchange is
+    confirmed. ``vc_identity`` (per image, the identity of each VC) limits the
+    surface VCs that leave to that person's; (image, person) pairs in ``done``
+    (exchanged before) are not tried again, the image's other people are: a
+    static camera's image holds the same person seen from the back at several
+    instants.
+
+    ``pending`` (updated in place, kept between calls): the (image, person)
+    pairs an earlier ranking found and nobody has tried yet, most significant
+    first. Each is tested again on the model as it is now before it is tried;
+    all people are ranked again only when none of them is left. A confirmed
+    exchange changes that person's points and that image's pose, and the others'
+    tests little, so the next exchange is found without testing every person
+    again: with static cameras an image holds every instant's people, and one
+    ranking per exchange made the check's cost grow with the cube of the
+    instants."""
     tried: set[tuple[int, int]] = set(done or ())
+    pending = [] if pending is None else pending
+    ranked: list[Exchange] = []  # this model's ranking (a failed trial keeps it)
+    ranked_once = False  # the model changes only when this call returns
     before = keypoint_cost(rec, tracks, scale_px)
     while True:
-        found = best_exchange(
-            rec, tracks, partner, candidates, options, limit_px, tried
-        )
-        if found is None:
-            return None
-        image_id, identity, swapped, pose, as_labelled, exchanged = found
+        if ranked:
+            found: Exchange | None = ranked.pop(0)
+        elif pending:
+            image_id, identity = pending.pop(0)
+            if (image_id, identity) in tried or image_id not in candidates:
+                continue
+            found = retest(rec, tracks, partner, image_id, identity, options, limit_px)
+        else:
+            if ranked_once:
+                return None  # every person this model ranks has been tried
+            ranked_once = True
+            ranked = ranked_exchanges(
+                rec, tracks, partner, candidates, options, limit_px, tried
+            )
+            if not ranked:
+                return None
+            pending[:] = [(e.image_id, e.identity) for e in ranked[1:]]
+            continue
+        if found is None or (found.image_id, found.identity) in tried:
+            continue
+        image_id, identity = found.image_id, found.identity
+        if pending and pending[0] == (image_id, identity):
+            pending.pop(0)
         trial = pycolmap.Reconstruction(rec)
         person = (
             None
@@ -270,10 +356,17 @@ def try_exchange(
             else (identity, vc_identity[image_id])
         )
         exchange_labels_inplace(
-            trial, tracks, swapped, image_id, pose, num_classic, options, person
+            trial,
+            tracks,
+            found.swapped,
+            image_id,
+            found.pose,
+            num_classic,
+            options,
+            person,
         )
         adjust(trial)
-        after = keypoint_cost(trial, swapped, scale_px)
+        after = keypoint_cost(trial, found.swapped, scale_px)
         logger.debug(
             "camera check: %s person %d exchanged: keypoint cost %.4g -> %.4g",
             rec.image(image_id).name,
@@ -283,11 +376,24 @@ def try_exchange(
         )
         if after < before:
             exchange_labels_inplace(
-                rec, tracks, swapped, image_id, pose, num_classic, options, person
+                rec,
+                tracks,
+                found.swapped,
+                image_id,
+                found.pose,
+                num_classic,
+                options,
+                person,
             )
             if not _adopt_adjusted(rec, trial):
                 adjust(rec)
-            return swapped, image_id, identity, as_labelled, exchanged
+            return (
+                found.swapped,
+                image_id,
+                identity,
+                found.as_labelled,
+                found.exchanged,
+            )
         tried.add((image_id, identity))
 
 

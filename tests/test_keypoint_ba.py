@@ -553,6 +553,30 @@ def test_every_person_a_camera_sees_from_the_back_is_exchanged(dome_scene, rng):
     assert seen.count(image_id) == n
 
 
+def test_the_people_one_ranking_finds_are_tried_in_turn(dome_scene, rng, monkeypatch):
+    """After a confirmed exchange the people the last ranking found are tested
+    again one by one and tried, not ranked again with everybody: one ranking
+    finds both people seen from the back, a second finds nobody left. (Ranking
+    again after every exchange made the check's cost grow with the cube of a
+    static camera's instants.) Both are still exchanged."""
+    from colmap_vc import label_check
+
+    rec, tracks, n, image_id, name = _two_people_seen_from_the_back(dome_scene, rng)
+    rankings: list[int] = []
+    rank = label_check.ranked_exchanges
+
+    def counted(*args, **kwargs):
+        found = rank(*args, **kwargs)
+        rankings.append(len(found))
+        return found
+
+    monkeypatch.setattr(label_check, "ranked_exchanges", counted)
+    check = _label_check(rec, tracks, n)
+    assert check.mirrored == [name] and not check.left_out
+    assert rankings == [2, 0]
+    assert {(i, p) for i, p in check.exchanged} == {(image_id, 0), (image_id, 1)}
+
+
 def test_the_label_test_fits_an_image_as_labelled_once(dome_scene, rng, monkeypatch):
     """The image's pose for all its keypoints as labelled is the same whichever
     person's labels are exchanged: the label test fits it once per image (with
@@ -571,10 +595,10 @@ def test_the_label_test_fits_an_image_as_labelled_once(dome_scene, rng, monkeypa
         return pnp(*args, **kwargs)
 
     monkeypatch.setattr(label_check, "robust_pnp", counted)
-    found = label_check.best_exchange(
+    found = label_check.ranked_exchanges(
         rec, tracks, partner, [image_id], options, 50.0, set()
     )
-    assert found is not None and found[0] == image_id
+    assert found and found[0].image_id == image_id
     assert len(fits) == 1 + 2  # as labelled once, then each person exchanged
     others = solve_tracks(
         track_system(rec, tracks), tracks, tracks.image_id == image_id
