@@ -88,9 +88,11 @@ def make_database(
     images: list[str],
     cameras: Mapping[str, pycolmap.Camera | None],
     db: Path,
+    match: bool = True,
 ) -> None:
     """SIFT + exhaustive matching with the known intrinsics, images in this order
-    (an image whose camera is None: COLMAP's guess, as without calibration)."""
+    (an image whose camera is None: COLMAP's guess, as without calibration);
+    ``match=False``: SIFT only, no classic matches."""
     db.parent.mkdir(parents=True, exist_ok=True)
     if db.exists():
         db.unlink()
@@ -115,6 +117,8 @@ def make_database(
             extraction_options=extraction,
             device=pycolmap.Device.cpu,
         )
+    if not match:
+        return
     pycolmap.match_exhaustive(
         db,
         matching_options=pycolmap.FeatureMatchingOptions(num_threads=2),

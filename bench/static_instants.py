@@ -120,11 +120,12 @@ def cam_of(name: str) -> str:
 
 
 def frames_and_priors(
-    dataset: str, work: Path, most: int
+    dataset: str, work: Path, most: int, step: int = 5
 ) -> tuple[Path, Path, list[int], list[int]]:
     """The videos' frames at ``most`` instants (`colmap-vc frames`, farthest-point
-    order) and their priors, made once in ``work`` -> (frames folder, priors
-    folder, the instants in that order, the cameras' frame offsets)."""
+    order, candidates every ``step`` frames) and their priors, made once in
+    ``work`` -> (frames folder, priors folder, the instants in that order, the
+    cameras' frame offsets)."""
     data = SHARED / f"pose2sim_{dataset}"
     frames = work / "frames"
     offsets = [
@@ -132,7 +133,7 @@ def frames_and_priors(
         for c in json.loads((data / "cameras.json").read_text())["cameras"]
     ]
     summary = extract_frames(
-        videos(DEMOS[dataset]), frames, offsets=offsets, num_instants=most
+        videos(DEMOS[dataset]), frames, offsets=offsets, num_instants=most, step=step
     )
     instants = [int(t) for t in summary.instants]  # farthest-point order
     priors = work / "priors"
@@ -147,8 +148,12 @@ def frames_and_priors(
         link = work / "_all" / "images"
         if not link.exists():
             link.symlink_to(frames.resolve(), target_is_directory=True)
-        make_database(
-            work / "_all", names, {n: cameras[n.split("_")[0]] for n in names}, db
+        make_database(  # the priors read its cameras: no matching
+            work / "_all",
+            names,
+            {n: cameras[n.split("_")[0]] for n in names},
+            db,
+            match=False,
         )
         code = cli.main(
             [
@@ -170,9 +175,13 @@ def run(
     priors: Path,
     cams: tuple[str, ...],
     map_only: bool = False,
+    variants: dict[str, list[str]] | None = None,
+    match: bool = True,
 ) -> dict:
     """``augment`` and ``map`` on the frames of cameras ``cams`` at the first ``num``
-    instants -> variant -> accuracy against the calibration of those cameras."""
+    instants -> variant -> accuracy against the calibration of those cameras.
+    ``variants``: `map`'s arms (default :data:`VARIANTS`); ``match=False``: no
+    classic matches in the database."""
     calib, gt_shared = load_calibration(data)
     cameras = {cam_of(n): c for n, c in calib.items()}
     gt_cam = {cam_of(n): g for n, g in gt_shared.items() if cam_of(n) in cams}
@@ -189,7 +198,7 @@ def run(
         shutil.copytree(
             frames, row / "images", ignore=lambda d, fs: set(fs) - set(names)
         )
-        make_database(row, names, {n: cameras[cam_of(n)] for n in names}, db)
+        make_database(row, names, {n: cameras[cam_of(n)] for n in names}, db, match)
         sub = subset_priors(priors, names, row / "priors")
         t0 = time.perf_counter()
         code = cli.main(["augment", str(db), "--priors", str(sub), *args])
@@ -197,7 +206,7 @@ def run(
         seconds = time.perf_counter() - t0
         done.write_text(f"{seconds:.1f} s\n")
     out = {}
-    for variant, extra in VARIANTS.items():  # the same augmented database
+    for variant, extra in (variants or VARIANTS).items():  # the same database
         sparse = variant_dir(row, "sparse", extra)
         shutil.rmtree(sparse, ignore_errors=True)  # the bench's own output
         t0 = time.perf_counter()
@@ -213,8 +222,16 @@ def run(
             "cameras": list(cams),
             "images": len(names),
             "seconds_augment_map": seconds + time.perf_counter() - t0,
+            "seconds_augment": seconds,  # 0: reused (--map-only)
+            "map_timings_s": _map_timings(sparse),
         }
     return out
+
+
+def _map_timings(sparse: Path) -> dict[str, float]:
+    """`map`'s own timings (its map_options.json), {} when it wrote no model."""
+    spec = sparse / "0" / "map_options.json"
+    return json.loads(spec.read_text())["timings_s"] if spec.exists() else {}
 
 
 def _scores(errors: np.ndarray) -> dict:
