@@ -183,7 +183,9 @@ def test_person(
     return Exchange(image_id, identity, swapped, pose, as_labelled, exchanged, score)
 
 
-def _exchangeable(tracks: KeypointTracks, partner: IndexArray, image_id: int) -> list:
+def _exchangeable(
+    tracks: KeypointTracks, partner: IndexArray, image_id: int
+) -> list[int]:
     """The identities of image ``image_id`` with keypoints that have a mirror."""
     assert tracks.keys is not None
     mine = tracks.track[tracks.image_id == image_id]
@@ -355,16 +357,8 @@ def try_exchange(
             if vc_identity is None or image_id not in vc_identity
             else (identity, vc_identity[image_id])
         )
-        exchange_labels_inplace(
-            trial,
-            tracks,
-            found.swapped,
-            image_id,
-            found.pose,
-            num_classic,
-            options,
-            person,
-        )
+        change = (tracks, found.swapped, image_id, found.pose, num_classic, options)
+        exchange_labels_inplace(trial, *change, person)
         adjust(trial)
         after = keypoint_cost(trial, found.swapped, scale_px)
         logger.debug(
@@ -375,16 +369,7 @@ def try_exchange(
             after,
         )
         if after < before:
-            exchange_labels_inplace(
-                rec,
-                tracks,
-                found.swapped,
-                image_id,
-                found.pose,
-                num_classic,
-                options,
-                person,
-            )
+            exchange_labels_inplace(rec, *change, person)
             if not _adopt_adjusted(rec, trial):
                 adjust(rec)
             return (
