@@ -137,7 +137,7 @@ def labels_exchanged(as_labelled: float, exchanged: float, n: int, z: float) -> 
 
 
 class Exchange(NamedTuple):
-    """One person whose labels fit better exchanged (:func:`test_person`)."""
+    """One person whose labels fit better exchanged (:func:`exchange_of`)."""
 
     image_id: int
     identity: int
@@ -148,7 +148,7 @@ class Exchange(NamedTuple):
     score: float  # log(exchanged / as labelled) sqrt(n): lower is clearer
 
 
-def test_person(
+def exchange_of(
     rec: pycolmap.Reconstruction,
     tracks: KeypointTracks,
     partner: IndexArray,
@@ -203,7 +203,7 @@ def ranked_exchanges(
 ) -> list[Exchange]:
     """Every person of the ``candidates`` images whose keypoints fit the other
     cameras' points significantly better with left and right exchanged
-    (:func:`test_person`; (image, person) pairs in ``skip`` are not tried), most
+    (:func:`exchange_of`; (image, person) pairs in ``skip`` are not tried), most
     significant first. One person at a time: a prior is turned per person, and
     another person of the image (or a false detection linked across two images)
     keeps its labels. Visited in name order, ties go to the first."""
@@ -217,7 +217,7 @@ def ranked_exchanges(
                 continue
             if fit is None:
                 fit = image_fit(rec, tracks, i, others, options, limit_px)
-            one = test_person(
+            one = exchange_of(
                 rec, tracks, partner, i, identity, others, fit, options, limit_px
             )
             if one is not None:
@@ -234,14 +234,14 @@ def retest(
     options: KeypointBaOptions,
     limit_px: float,
 ) -> Exchange | None:
-    """:func:`test_person` of one person on the model as it is now."""
+    """:func:`exchange_of` of one person on the model as it is now."""
     if identity not in _exchangeable(tracks, partner, image_id):
         return None
     others = solve_tracks(
         track_system(rec, tracks), tracks, tracks.image_id == image_id
     )
     fit = image_fit(rec, tracks, image_id, others, options, limit_px)
-    return test_person(
+    return exchange_of(
         rec, tracks, partner, image_id, identity, others, fit, options, limit_px
     )
 
