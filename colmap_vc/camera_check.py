@@ -246,7 +246,7 @@ def check_cameras_inplace(
             )
             if found is None:
                 break
-            tracks, image_id, identity, as_labelled, exchanged = found
+            tracks, image_id, identity = found.swapped, found.image_id, found.identity
             exchanged_people.add((image_id, identity))
             kept = _without_poor_witness(rec, tracks, image_id, identity, options)
             if kept is not tracks:
@@ -262,8 +262,8 @@ def check_cameras_inplace(
                 "estimator saw them from the back as if from the front); that "
                 "person's surface VCs are not used",
                 name,
-                exchanged,
-                as_labelled,
+                found.exchanged,
+                found.as_labelled,
             )
             for names in (relocalised, mirrored):
                 if name not in names:

@@ -301,27 +301,23 @@ def try_exchange(
     vc_identity: dict[int, IndexArray] | None = None,
     done: set[tuple[int, int]] | None = None,
     pending: list[tuple[int, int]] | None = None,
-) -> tuple[KeypointTracks, int, int, float, float] | None:
+) -> Exchange | None:
     """Exchange left and right of the most significant person
-    :func:`ranked_exchanges` finds, when the adjusted model then fits all keypoints
-    better (:func:`keypoint_cost`): (the new tracks, the image re-posed, the
-    person, median error as labelled, exchanged). An exchange the adjustment does
-    not confirm is undone and the next person is tried; None when no exchange is
-    confirmed. ``vc_identity`` (per image, the identity of each VC) limits the
-    surface VCs that leave to that person's; (image, person) pairs in ``done``
-    (exchanged before) are not tried again, the image's other people are: a
-    static camera's image holds the same person seen from the back at several
-    instants.
+    :func:`ranked_exchanges` finds, when the adjusted model then fits all
+    keypoints better (:func:`keypoint_cost`), and return it. An exchange the
+    adjustment does not confirm is undone and the next person is tried; None when
+    no exchange is confirmed. ``vc_identity`` (per image, the identity of each
+    VC) limits the surface VCs that leave to that person's; (image, person) pairs
+    in ``done`` (exchanged before) are not tried again, the image's other people
+    are: a static camera's image holds the same person seen from the back at
+    several instants.
 
     ``pending`` (updated in place, kept between calls): the (image, person)
-    pairs an earlier ranking found and nobody has tried yet, most significant
-    first. Each is tested again on the model as it is now before it is tried;
-    all people are ranked again only when none of them is left. A confirmed
-    exchange changes that person's points and that image's pose, and the others'
-    tests little, so the next exchange is found without testing every person
-    again: with static cameras an image holds every instant's people, and one
-    ranking per exchange made the check's cost grow with the cube of the
-    instants."""
+    pairs an earlier ranking found and nobody has tried, most significant first.
+    Each is tested again on the model as it is now before it is tried; everybody
+    is ranked again only when none is left. An exchange changes one person's
+    points and one image's pose, and the others' tests little; with static
+    cameras a ranking per exchange grew with the cube of the instants."""
     tried: set[tuple[int, int]] = set(done or ())
     pending = [] if pending is None else pending
     ranked: list[Exchange] = []  # this model's ranking (a failed trial keeps it)
@@ -372,13 +368,7 @@ def try_exchange(
             exchange_labels_inplace(rec, *change, person)
             if not _adopt_adjusted(rec, trial):
                 adjust(rec)
-            return (
-                found.swapped,
-                image_id,
-                identity,
-                found.as_labelled,
-                found.exchanged,
-            )
+            return found
         tried.add((image_id, identity))
 
 
