@@ -340,13 +340,10 @@ def try_exchange(
             )
             if not ranked:
                 return None
-            pending[:] = [(e.image_id, e.identity) for e in ranked[1:]]
             continue
-        if found is None or (found.image_id, found.identity) in tried:
+        if found is None:  # no longer significant
             continue
         image_id, identity = found.image_id, found.identity
-        if pending and pending[0] == (image_id, identity):
-            pending.pop(0)
         trial = pycolmap.Reconstruction(rec)
         person = (
             None
@@ -368,6 +365,8 @@ def try_exchange(
             exchange_labels_inplace(rec, *change, person)
             if not _adopt_adjusted(rec, trial):
                 adjust(rec)
+            if ranked_once:  # pending was empty; the rest of this ranking waits
+                pending[:] = [(e.image_id, e.identity) for e in ranked]
             return found
         tried.add((image_id, identity))
 
