@@ -329,7 +329,7 @@ def main() -> None:
     commit = machine()["commit"]
     table.append(
         f"\nMeasured at commit {commit} by `.venv/bin/python bench/surface_offsets.py` "
-        f"({(time.perf_counter() - t0) / 60:.0f} min) on the models of "
+        f"({time.perf_counter() - t0:.0f} s) on the models of "
         "`bench/realdata.py` and `bench/gba_seeds.py` (`map`'s default). Per person "
         "and image, the similarity (shift, scale, turn) that best explains the "
         "errors of its keypoints, and that of its surface samples, against their "
