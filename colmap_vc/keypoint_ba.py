@@ -83,7 +83,10 @@ class KeypointBaOptions:
     instants of keypoints should outweigh (five instants: docs/results.md). It
     replaced a random subset of that many observations, whose draw moved
     pose2sim_single t090 between 55 and 69 AUC@15 (docs/gba.md, "The default's
-    surface budget")."""
+    surface budget"). The value: the errors a person's keypoints and surface
+    share in an image, with their correlation, give one weight for pose2sim and
+    the synthetic domes at 7.2 (5.2-9.1); at 6 no row's variance is more than
+    8.2 % above its own best (``bench/surface_offsets.py``)."""
     surface_per_image_two_view: float = 24.0
     """The same budget for a model of two images, where one person's keypoint tracks
     (2 observations each) barely constrain the relative pose and the surface VCs
