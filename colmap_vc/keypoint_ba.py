@@ -91,7 +91,11 @@ class KeypointBaOptions:
     """The same budget for a model of two images, where one person's keypoint tracks
     (2 observations each) barely constrain the relative pose and the surface VCs
     condition it (synthetic two-view scenes, realistic priors: AUC@15 20.8 with 6,
-    34.5 with 24, drawn as the budget then was; docs/results.md)."""
+    34.5 with 24, drawn as the budget then was; docs/results.md). Weighted, 6 to 48
+    read the same on every two-image row mapped from the start; it matters where a
+    check leaves two images of a larger model, from that model's poses
+    (pose2sim_single t070 cam01-cam03: 27 deg off at 6, 5.4 at 24; docs/gba.md,
+    "Not done")."""
     surface_tracks: bool = False
     """The generalized BA (``map --gba``): after the camera check, the budget's
     surface points give way to every surface VC in its track by identity (person,
