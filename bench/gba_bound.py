@@ -151,17 +151,23 @@ def with_pixels(tracks: kt.KeypointTracks, xy: np.ndarray) -> kt.KeypointTracks:
     return dataclasses.replace(tracks, xy_img=xy)
 
 
+def similarity_design(c: np.ndarray) -> np.ndarray:
+    """(2N, 4) design of a small 2D similarity (shift x, y; scale; turn) at the
+    centred pixels ``c`` (N, 2), rows interleaved x, y."""
+    A = np.zeros((2 * len(c), 4))
+    A[0::2, 0], A[1::2, 1] = 1, 1
+    A[0::2, 2], A[1::2, 2] = c[:, 0], c[:, 1]
+    A[0::2, 3], A[1::2, 3] = -c[:, 1], c[:, 0]
+    return A
+
+
 def similarity_removed(tracks: kt.KeypointTracks, truth: np.ndarray) -> np.ndarray:
     """Pixels less each image's least-squares similarity of their error."""
     xy = tracks.xy_img.copy()
     err = tracks.xy_img - truth
     for i in np.unique(tracks.image_id):  # loop over images
         sel = tracks.image_id == i
-        c = tracks.xy_img[sel] - tracks.xy_img[sel].mean(axis=0)
-        A = np.zeros((2 * len(c), 4))
-        A[0::2, 0], A[1::2, 1] = 1, 1
-        A[0::2, 2], A[1::2, 2] = c[:, 0], c[:, 1]
-        A[0::2, 3], A[1::2, 3] = -c[:, 1], c[:, 0]
+        A = similarity_design(tracks.xy_img[sel] - tracks.xy_img[sel].mean(axis=0))
         p, *_ = np.linalg.lstsq(A, err[sel].ravel(), rcond=None)
         xy[sel] -= (A @ p).reshape(-1, 2)
     return xy

@@ -38,7 +38,7 @@ from pathlib import Path
 import numpy as np
 import pycolmap
 from common import DOCS, OUT, machine, replace_section, setup_logging, write_json
-from gba_bound import projections
+from gba_bound import projections, similarity_design
 from realdata import INSTANTS, SHARED, load_calibration
 from static_ceiling import posed_copy
 
@@ -87,11 +87,7 @@ def shared_errors(
         if group not in frame or m.sum() < 4:
             continue
         centre, radius = frame[group]
-        c = (tracks.xy_img[m] - centre) / radius
-        A = np.zeros((2 * len(c), 4))
-        A[0::2, 0], A[1::2, 1] = 1, 1
-        A[0::2, 2], A[1::2, 2] = c[:, 0], c[:, 1]
-        A[0::2, 3], A[1::2, 3] = -c[:, 1], c[:, 0]
+        A = similarity_design((tracks.xy_img[m] - centre) / radius)
         p, *_ = np.linalg.lstsq(A, err[m].ravel(), rcond=None)
         out[group] = (p, int(m.sum()))
     return out
