@@ -7,7 +7,7 @@ pose2sim_single and pose2sim_multi, each instant on its own (the databases of
 
 Arms (`colmap-vc map` options):
 
-- keypoints alone: ``--surface-per-image 0 --surface-per-image-two-view 0 --no-gravity``
+- keypoints alone: ``--surface-per-image 0 --no-gravity``
   (the mapper still uses the surface VCs to find its model; the refinement then
   keeps the keypoint tracks and classic points only);
 - keypoints + up: the same with the cameras' up (`map`'s gravity step);
@@ -46,7 +46,7 @@ logger = logging.getLogger("bench.evidence")
 
 UP_WORLD = np.array([0.0, 0.0, 1.0])  # pose2sim's world (cameras.json): Z up
 
-NO_SURFACE = ["--surface-per-image", "0", "--surface-per-image-two-view", "0"]
+NO_SURFACE = ["--surface-per-image", "0"]
 ARMS: dict[str, list[str]] = {
     "keypoints alone": [*NO_SURFACE, "--no-gravity"],
     "keypoints + up": NO_SURFACE,

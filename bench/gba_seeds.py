@@ -44,9 +44,7 @@ from colmap_vc.synthetic import SynthOptions, generate
 logger = logging.getLogger("bench.gba_seeds")
 
 ARMS = {
-    "keypoints": KeypointBaOptions(
-        surface_per_image=0.0, surface_per_image_two_view=0.0
-    ),
+    "keypoints": KeypointBaOptions(surface_per_image=0.0),
     "default": KeypointBaOptions(),
     "gba": KeypointBaOptions(surface_tracks=True),
 }

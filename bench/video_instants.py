@@ -57,7 +57,7 @@ from colmap_vc.evaluation import evaluate_poses
 
 logger = logging.getLogger("bench.video_instants")
 
-NO_SURFACE = ["--surface-per-image", "0", "--surface-per-image-two-view", "0"]
+NO_SURFACE = ["--surface-per-image", "0"]
 ARMS: dict[str, list[str]] = {
     "keypoints alone (no surface point)": NO_SURFACE,
     "`map`": [],

@@ -9,7 +9,7 @@ identities (people linked across images by ``augment``'s person associations),
 triangulates them with the model's poses and runs COLMAP's bundle adjustment with a
 Cauchy loss scaled to the keypoints' pixel error, keeping classic (SIFT) points and
 the mapper's surface-VC points, each image's weighted to a fixed total
-(``surface_per_image`` observations, more for two images: dense maps rendered
+(``surface_per_image`` observations, two images as many: dense maps rendered
 from a mesh fitted to the same landmarks add correlated errors, docs/real-data.md).
 
 On pose2sim (docs/results.md) the pass converges to the same poses from the mapper's
@@ -86,16 +86,10 @@ class KeypointBaOptions:
     surface budget"). The value: the errors a person's keypoints and surface
     share in an image, with their correlation, give one weight for pose2sim and
     the synthetic domes at 7.2 (5.2-9.1); at 6 no row's variance is more than
-    8.2 % above its own best (``bench/surface_offsets.py``)."""
-    surface_per_image_two_view: float = 24.0
-    """The same budget for a model of two images, where one person's keypoint tracks
-    (2 observations each) barely constrain the relative pose and the surface VCs
-    condition it (synthetic two-view scenes, realistic priors: AUC@15 20.8 with 6,
-    34.5 with 24, drawn as the budget then was; docs/results.md). Weighted, 6 to 48
-    read the same on every two-image row mapped from the start; it matters where a
-    check leaves two images of a larger model, from that model's poses
-    (pose2sim_single t070 cam01-cam03: 27 deg off at 6, 5.4 at 24; docs/gba.md,
-    "Not done")."""
+    8.2 % above its own best (``bench/surface_offsets.py``). Two images weigh
+    the same: 6 to 48 read alike on every two-image row (docs/gba.md, "Not
+    done"); two images a check leaves of a larger model are mapped again on
+    their own first (:mod:`colmap_vc.mapping.pipeline`)."""
     surface_tracks: bool = False
     """The generalized BA (``map --gba``): after the camera check, the budget's
     surface points give way to every surface VC in its track by identity (person,
@@ -268,11 +262,7 @@ def keypoint_bundle_adjustment(
             continue
         vc_only.append(point_id)
         vc_obs.extend(els)
-    per_image = (
-        options.surface_per_image_two_view
-        if len(registered) == 2
-        else options.surface_per_image
-    )
+    per_image = options.surface_per_image
     dropped = 0
     if per_image == 0:
         for point_id in vc_only:
