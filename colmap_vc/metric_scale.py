@@ -91,12 +91,14 @@ synthetic domes with
 TWO_VIEW_POSE_SD_DEG = 3.8
 """Standard deviation, per degree of freedom, of the relative pose of two images
 that only their people place (three of rotation, two of the baseline's
-direction). pose2sim's two-camera models of one instant (57 of them, `bench/subsets.py`)
-have a median pair error of 5.9 deg; the median length of a 3D Gaussian vector
-is 1.54 standard deviations. A two-view model's depths, and so its scale, follow
-its relative pose, by more the narrower the baseline
-(:func:`relative_pose_uncertainty`); with more images, or with classic matches
-placing both, the poses are held better and this term is left out."""
+direction). pose2sim's two-camera models of one instant (57 of them,
+`bench/subsets.py`) had a median pair error of 5.9 deg; the median length of a
+3D Gaussian vector is 1.54 standard deviations. Since two images weigh their
+surface as any model does, the 58 read 6.0 deg (3.9 per degree of freedom;
+kept at 3.8). A two-view model's depths, and so its scale, follow its relative
+pose, by more the narrower the baseline (:func:`relative_pose_uncertainty`);
+with more images, or with classic matches placing both, the poses are held
+better and this term is left out."""
 
 
 @dataclass(frozen=True, kw_only=True, slots=True)

@@ -287,8 +287,8 @@ def _map_copy(
         logger.warning(
             "two images placed by their people alone: expect a relative "
             "rotation several degrees off, and now and then far off "
-            "(pose2sim, one instant, two cameras: median 5-11 deg, and 9 of "
-            "57 models more than 30 deg off, 3 of them nearly reversed where "
+            "(pose2sim, one instant, two cameras: median 5-8 deg, and 10 of "
+            "58 models more than 30 deg off, 4 of them nearly reversed where "
             "a person's prior was turned front to back, which takes a third "
             'camera to detect; docs/results.md, "Real photos: fewer cameras, '
             'fewer instants"); more cameras or instants of static cameras '
@@ -470,7 +470,7 @@ def _people_only_pair(
     rec: pycolmap.Reconstruction, inputs: MapInputs, options: MappingOptions
 ) -> bool:
     """Two images, one instant, and classic matches do not place both: their
-    relative pose is the people's alone (pose2sim: 5-11 deg median)."""
+    relative pose is the people's alone (pose2sim: 5-8 deg median)."""
     return (
         rec.num_reg_images() == 2
         and inputs.static is None
