@@ -4,7 +4,8 @@
 2. The strategy is chosen in one place (:mod:`.choice`).
 3. The refinement: the keypoint bundle adjustment, or the generalized one with
    ``--gba`` (:mod:`colmap_vc.keypoint_ba`, docs/gba.md), with its camera check.
-4. The checks against the meshes: a camera that contradicts them is left out.
+4. The checks against the meshes: a camera that contradicts them is left out;
+   when two images remain they are mapped again on their own and adjusted.
 5. The cameras' up from the scene's vertical lines (:mod:`.up`; ``--no-gravity``
    skips it).
 6. The metric scale from the people's size.
