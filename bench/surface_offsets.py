@@ -137,12 +137,18 @@ def trimmed(rows: np.ndarray) -> np.ndarray:
     return rows[(size <= TRIM * scale).all(axis=1)]
 
 
+def moments(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Per component (shift x, y, scale, turn): the keypoints' and the surface's
+    similarity errors' second moments a, b and their cross moment c."""
+    o, shared = rows[:, 0:4], rows[:, 4:8]
+    return np.mean(o**2, 0), np.mean(shared**2, 0), np.mean(o * shared, 0)
+
+
 def variance_ratio(rows: np.ndarray, ratio: np.ndarray) -> np.ndarray:
     """Per weight ratio r (surface : keypoints), the variance of the weighted mean
     of the two kinds' similarity errors over that of the keypoints alone, the mean
     over the four components (shift x, y, scale, turn)."""
-    o, shared = rows[:, 0:4], rows[:, 4:8]
-    a, b, c = np.mean(o**2, 0), np.mean(shared**2, 0), np.mean(o * shared, 0)
+    a, b, c = moments(rows)
     r = ratio[:, None]
     return np.mean((a + r**2 * b + 2 * r * c) / ((1 + r) ** 2 * a), axis=1)
 
@@ -164,8 +170,7 @@ def excess(rows: np.ndarray) -> np.ndarray:
 def summary(rows: np.ndarray) -> dict:
     """The row's shared errors, its own weight and its variance at the swept weights."""
     kept = trimmed(rows)
-    o, shared = kept[:, 0:4], kept[:, 4:8]
-    a, b, c = np.mean(o**2, 0), np.mean(shared**2, 0), np.mean(o * shared, 0)
+    a, b, c = moments(kept)
     keypoints = float(np.median(kept[:, 8]))
     return {
         "person_images": len(rows),
